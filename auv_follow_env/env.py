@@ -1,0 +1,228 @@
+"""AUVFollowEnv: the single Gymnasium environment (a batch-of-one shell over BatchSim)."""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from auv_follow_env import dynamics as dyn
+from auv_follow_env.layout import OBS_DIM
+from auv_follow_env.metrics import tracking_metrics
+from auv_follow_env.params import TaskSpec, make_config
+from auv_follow_env.sim import BatchSim
+
+__all__ = ["AUVFollowEnv", "check_action"]
+
+_IDX0 = np.zeros(1, dtype=np.int64)
+
+
+def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """Return ``action`` as a numeric ndarray of ``shape`` or raise a clear error.
+
+    Finiteness is checked by the kernel before anything changes.
+    """
+    if isinstance(action, np.ndarray):
+        a = action
+    else:
+        try:
+            a = np.asarray(action)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"action={action!r} is not a numeric array: {exc}") from exc
+    if a.dtype.kind not in "fiu" or a.dtype.kind == "b":
+        raise ValueError(f"action has dtype {a.dtype}: a real-valued array of shape {shape} in "
+                         f"[-1, 1] is expected")
+    if a.shape != shape:
+        raise ValueError(f"action has shape {a.shape}: expected {shape} (F_u, F_v, F_r in [-1, 1])")
+    return a
+
+
+class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
+    r"""Delayed dynamic target following by an underwater robot (Zhang et al. 2026).
+
+    ## Description
+
+    A planar 3-DOF underwater robot (eqs. (1)-(9)) must hold a reference point
+    ``p_d = [-0.65, 0.12] m`` behind a manoeuvring target (eq. (21)), while the target's
+    pose and velocity reach it only ``tau`` seconds late (eq. (12)), under an ocean current,
+    lumped disturbances and damping mismatch. The paper's controllers are in
+    ``controllers``; this env is the plant and the task.
+
+    ## Action Space
+
+    ``Box(-1, 1, (3,), float32)``, scaled by ``force_limits`` and held over the control
+    step. Values outside [-1, 1] are clipped; NaN/inf, wrong shape or non-numeric dtype
+    raise ``ValueError`` and leave the env untouched.
+
+    | Num | Action | Physical at +-1 (default) |
+    |-----|--------|---------------------------|
+    | 0   | surge force F_u | +-150 N |
+    | 1   | sway force F_v  | +-150 N |
+    | 2   | yaw moment F_r  | +-30 N m |
+
+    ## Observation Space
+
+    ``Box(-inf, inf, (16,), float32)``, all in the follower's body frame, SI units; layout
+    in :mod:`auv_follow_env.layout` (decode by name with ``layout.decode``):
+
+    | Num | Name | Unit | Meaning |
+    |-----|------|------|---------|
+    | 0-2 | u, v, r | m/s, m/s, rad/s | follower body velocity (ground-referenced) |
+    | 3-4 | cos_psi, sin_psi | - | follower heading (compass) |
+    | 5-6 | target_dx, target_dy | m | delayed target position relative to the follower |
+    | 7-8 | target_cos_dpsi, target_sin_dpsi | - | delayed target heading relative to the follower |
+    | 9-11 | target_u, target_v, target_r | m/s, m/s, rad/s | delayed target body velocity |
+    | 12-13 | ref_dx, ref_dy | m | delayed reference point (no prediction) relative to follower |
+    | 14-15 | current_u, current_v | m/s | measured current in the body frame (eq. (5)) |
+
+    The true present target is never observed. Before ``t = tau`` the follower receives the
+    target's genuine state at ``t - tau < 0``: the target is simulated from ``t = -tau``.
+    The static facts a controller may use (tau, p_d, psi_d, nominal model, dt, force limits)
+    are in the immutable :class:`~auv_follow_env.params.TaskSpec` ``env.unwrapped.task_spec``.
+
+    ## Rewards
+
+    ``r = -||p - p_ref_true|| - effort_weight * mean(a^2)`` with ``p_ref_true`` from eq. (21)
+    with the *present* target (psi_d = 0). ``effort_weight`` is 0 by default. On termination
+    the reward also carries ``-max_distance_m`` for each remaining step, so ending early never
+    pays.
+
+    ## Starting State
+
+    The target starts at the origin heading +x at ``t = -tau`` with random manoeuvre phases.
+    The follower starts at rest with the delayed target's heading, ``init_offset_m`` (0.87 m)
+    behind the delayed reference point. Current periods/phases and disturbance phases are
+    drawn from the env's generator (``reset(seed=...)``).
+
+    ## Episode End
+
+    Truncation after ``episode_s`` (60 s = 1200 steps; registered as ``max_episode_steps``).
+    Termination when the follower is more than ``max_distance_m`` (20 m) from the true
+    reference, or the state is not finite.
+
+    ## Info
+
+    Every step: ``tracking_error`` (m, to the true reference), ``time`` (s), and for
+    evaluation only - never for policies - ``true_target`` (x, y, psi, u, v, r),
+    ``true_reference`` (x, y, psi) and ``follower_pose`` (x, y, psi). At the episode's end:
+    ``episode_metrics`` with the paper's mean / RMSE / max over the full run and t >= 10 s
+    (eqs. (64)-(65)), against the true reference. Samples are the states after each step.
+
+    ## Scenarios (Table 2) and disturbance levels (Table 3)
+
+    | Id | v_t (m/s) | tau (s) | level | damping mismatch | manoeuvres a_u, P_u; a_r, P_r |
+    |----|-----------|---------|-------|------------------|-------------------------------|
+    | S1 | 0.45 | 0.5 | L0 | +15 % | 0.025, 30 s; 0.02 rad/s, 40 s |
+    | S2 | 0.49 | 1.0 | L1 | +60 % | 0.075, 20 s; 0.05 rad/s, 30 s |
+    | S3 | 0.49 | 1.5 | L2 | +60 % | 0.075, 20 s; 0.05 rad/s, 30 s |
+    | S4 | 0.52 | 2.0 | L2 | +105 % | 0.10, 15 s; 0.07 rad/s, 24 s |
+
+    | Level | current x (m/s) | current y (m/s) | peaks (d_u, d_v, d_r) per unit mass |
+    |-------|-----------------|-----------------|-------------------------------------|
+    | L0 | 0 | 0 | 0 |
+    | L1 | [0.01, 0.03] | [-0.018, 0.002] | (0.02, 0.015, 0.008) |
+    | L2 | [0.02, 0.10] | [-0.065, 0.01] | (0.08, 0.065, 0.028) |
+
+    ## Arguments
+
+    ``gym.make("AUVFollow-S4-v0", disturbance="L1", delay_s=1.0)`` or
+    ``gym.make("AUVFollow-v0", scenario="S2")``. Overrides: ``delay_s``, ``episode_s``,
+    ``dt`` (0.05 s), ``physics_substeps`` (2), ``mismatch``, ``force_limits``,
+    ``init_offset_m``, ``max_distance_m``, ``effort_weight``, ``p_d``, ``psi_d``,
+    ``steady_start_s``; see :class:`~auv_follow_env.params.EnvConfig`. If you change
+    ``episode_s`` through ``gym.make``, pass the matching ``max_episode_steps`` too.
+
+    ## Version History
+
+    * v0: initial release.
+    """
+
+    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 20}
+
+    def __init__(self, scenario: str = "S4", disturbance: str | None = None,
+                 render_mode: str | None = None, **overrides: Any) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode={render_mode!r} is unknown: valid modes are "
+                             f"{self.metadata['render_modes']} or None")
+        self.config = make_config(scenario, disturbance, **overrides)
+        self.task_spec: TaskSpec = self.config.task_spec()
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.config.dt))}
+        self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
+        self.observation_space = spaces.Box(-np.inf, np.inf, (OBS_DIM,), np.float32)
+        self._sim = BatchSim(self.config, 1)
+        self._kernel, self._args = self._sim.step_call()
+        self._n_steps = self.config.n_steps
+        self._started = False
+        self._trails: deque | None = None
+        self._renderer = None
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        spec = self.spec
+        if spec is not None and spec.max_episode_steps not in (None, self._n_steps):
+            raise ValueError(
+                f"max_episode_steps={spec.max_episode_steps} disagrees with episode_s="
+                f"{self.config.episode_s} s ({self._n_steps} steps of {self.config.dt} s): pass "
+                f"max_episode_steps={self._n_steps} to gym.make, or the matching episode_s")
+        self._sim.reset(_IDX0, [self.np_random])
+        self._started = True
+        if self.render_mode is not None:
+            self._trails = deque(maxlen=int(20.0 / self.config.dt))
+            self._record_trail()
+        truth = self._sim.truth[0].copy()
+        info = {"tracking_error": float(truth[12]), "time": 0.0, "true_target": truth[3:9],
+                "true_reference": truth[9:12], "follower_pose": truth[0:3]}
+        if self.render_mode == "human":
+            self.render()
+        return self._sim.obs[0].copy(), info
+
+    def step(self, action: Any):
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        if type(action) is not np.ndarray or action.shape != (3,) or action.dtype.kind != "f":
+            action = check_action(action, (3,))
+        sim = self._sim
+        if self._kernel(*self._args, action) >= 0:
+            raise ValueError(f"action={action.tolist()} contains NaN or inf: the env was not changed")
+        k = int(sim.k[0])
+        truth = sim.truth[0].copy()
+        terminated = bool(sim.term[0])
+        info = {"tracking_error": float(truth[12]), "time": k * self.config.dt,
+                "true_target": truth[3:9], "true_reference": truth[9:12],
+                "follower_pose": truth[0:3]}
+        if terminated or k == self._n_steps:
+            info["episode_metrics"] = tracking_metrics(*sim.errors(0), self.config.steady_start_s)
+        if self.render_mode is not None:
+            self._record_trail()
+            if self.render_mode == "human":
+                self.render()
+        return (sim.obs[0].copy(), float(sim.rew[0]), terminated,
+                k >= self._n_steps and not terminated, info)
+
+    # --- rendering ------------------------------------------------------------------------
+    def _record_trail(self) -> None:
+        tr = self._sim.truth[0]
+        self._trails.append((tr[0], tr[1], tr[2], tr[3], tr[4], tr[5], tr[9], tr[10]))
+
+    def render(self):
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' "
+                            "or 'human' to gym.make")
+            return None
+        if not self._started:
+            raise RuntimeError("call reset() before render()")
+        from auv_follow_env.rendering import Renderer
+
+        if self._renderer is None:
+            self._renderer = Renderer(self.render_mode, self.metadata["render_fps"])
+        return self._renderer.draw(list(self._trails), self._sim.k[0] * self.config.dt,
+                                   float(self._sim.truth[0, dyn.T_ERR]))
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
