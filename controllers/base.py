@@ -1,0 +1,119 @@
+"""Shared machinery of the scripted controllers: the SB3 ``predict`` protocol over a batch,
+per-env memory reset on ``episode_start``, and filtered differentiation."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from auv_follow_env.layout import OBS_DIM
+from auv_follow_env.params import TaskSpec
+
+__all__ = ["ScriptedPolicy", "FilteredDerivative", "wrap_to_pi", "sat"]
+
+
+def wrap_to_pi(a: np.ndarray) -> np.ndarray:
+    """Angle wrapped into (-pi, pi] (eq. (24))."""
+    return np.arctan2(np.sin(a), np.cos(a))
+
+
+def sat(z: np.ndarray) -> np.ndarray:
+    """Boundary-layer saturation, eq. (35): clip to [-1, 1]."""
+    return np.clip(z, -1.0, 1.0)
+
+
+class FilteredDerivative:
+    """Batched filtered differentiation D(s) = s / (T_f s + 1), Tustin-discretised at dt.
+
+    ``d_k = (2 (x_k - x_{k-1}) + (2 T_f - dt) d_{k-1}) / (2 T_f + dt)``; at an env's first
+    sample after a reset the derivative is 0.
+    """
+
+    def __init__(self, dt: float, time_constant: float) -> None:
+        if not (math.isfinite(time_constant) and time_constant >= 0):
+            raise ValueError(f"time_constant={time_constant!r} is invalid: must be a finite number >= 0 [s]")
+        self.a = 2.0 / (2.0 * time_constant + dt)
+        self.b = (2.0 * time_constant - dt) / (2.0 * time_constant + dt)
+        self.prev: np.ndarray | None = None
+        self.d: np.ndarray | None = None
+
+    def reset(self, mask: np.ndarray, x: np.ndarray) -> None:
+        """Restart the envs where ``mask`` is set at the current sample ``x``."""
+        if self.prev is None or self.prev.shape != x.shape:
+            self.prev = x.copy()
+            self.d = np.zeros_like(x)
+            return
+        self.prev[mask] = x[mask]
+        self.d[mask] = 0.0
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        self.d = self.a * (x - self.prev) + self.b * self.d
+        self.prev = x.copy()
+        return self.d
+
+
+class ScriptedPolicy:
+    """Base of the scripted controllers: an SB3-style policy over observations.
+
+    Subclasses implement :meth:`forces` (batched, (N, OBS_DIM) -> (N, 3) in N / N m),
+    :meth:`reference` (the reference point they generate, in the follower body frame) and
+    :meth:`_reset_memory` (per-env memory where a mask is set).
+
+    ``predict`` accepts one observation (shape (16,)) or a batch (N, 16). Memory is reset
+    where ``episode_start`` is True; if ``episode_start`` is None, call :meth:`reset`
+    at each new episode yourself (the first call always starts fresh).
+    """
+
+    name = "scripted"
+
+    def __init__(self, spec: TaskSpec) -> None:
+        if not isinstance(spec, TaskSpec):
+            raise TypeError(f"spec must be an auv_follow_env TaskSpec, got {type(spec).__name__}; "
+                            f"use env.unwrapped.task_spec or auv_follow_env.make_task_spec(...)")
+        self.spec = spec
+        self.dt = spec.dt
+        self._limits = np.asarray(spec.force_limits, dtype=np.float64)
+        self._n: int | None = None
+        self.last_forces: np.ndarray | None = None
+
+    def reset(self) -> None:
+        """Forget all memory: the next call starts fresh for every env."""
+        self._n = None
+
+    def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
+                deterministic: bool = True) -> tuple[np.ndarray, Any]:
+        obs = np.asarray(observation, dtype=np.float64)
+        single = obs.ndim == 1
+        if single:
+            obs = obs[None, :]
+        if obs.ndim != 2 or obs.shape[1] != OBS_DIM:
+            raise ValueError(f"observation has shape {np.shape(observation)}: expected ({OBS_DIM},) "
+                             f"or (N, {OBS_DIM})")
+        n = obs.shape[0]
+        if self._n != n:
+            mask = np.ones(n, dtype=bool)
+            self._n = n
+        elif episode_start is None:
+            mask = np.zeros(n, dtype=bool)
+        else:
+            mask = np.asarray(episode_start, dtype=bool).reshape(-1)
+            if mask.shape != (n,):
+                raise ValueError(f"episode_start has shape {np.shape(episode_start)}: expected ({n},)")
+        forces = self.forces(obs, mask)
+        self.last_forces = forces
+        actions = np.clip(forces / self._limits, -1.0, 1.0).astype(np.float32)
+        return (actions[0] if single else actions), state
+
+    def __call__(self, observation: Any) -> np.ndarray:
+        return self.predict(observation)[0]
+
+    # to implement -------------------------------------------------------------------------
+    def forces(self, obs: np.ndarray, reset_mask: np.ndarray) -> np.ndarray:  # pragma: no cover
+        raise NotImplementedError
+
+    def reference(self, observation: Any) -> np.ndarray:  # pragma: no cover
+        """The reference (x, y, psi) this controller generates, relative to the follower in its
+        body frame, for observations (N, 16) -> (N, 3). Memoryless."""
+        raise NotImplementedError
