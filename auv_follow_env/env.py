@@ -18,6 +18,7 @@ from auv_follow_env.sim import BatchSim
 __all__ = ["AUVFollowEnv", "check_action"]
 
 _IDX0 = np.zeros(1, dtype=np.int64)
+_FAST_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 
 
 def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
@@ -37,7 +38,7 @@ def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
                          f"[-1, 1] is expected")
     if a.shape != shape:
         raise ValueError(f"action has shape {a.shape}: expected {shape} (F_u, F_v, F_r in [-1, 1])")
-    return a
+    return np.ascontiguousarray(a, dtype=np.float64)
 
 
 class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -183,7 +184,8 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
     def step(self, action: Any):
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        if type(action) is not np.ndarray or action.shape != (3,) or action.dtype.kind != "f":
+        if type(action) is not np.ndarray or action.shape != (3,) or action.dtype not in _FAST_DTYPES \
+                or not action.flags.c_contiguous:
             action = check_action(action, (3,))
         sim = self._sim
         if self._kernel(*self._args, action) >= 0:
