@@ -67,6 +67,7 @@ class ScriptedPolicy:
     """
 
     name = "scripted"
+    obs_dim = OBS_DIM  #: width of the observations this policy reads
 
     def __init__(self, spec: TaskSpec) -> None:
         if not isinstance(spec, TaskSpec):
@@ -88,9 +89,9 @@ class ScriptedPolicy:
         single = obs.ndim == 1
         if single:
             obs = obs[None, :]
-        if obs.ndim != 2 or obs.shape[1] != OBS_DIM:
-            raise ValueError(f"observation has shape {np.shape(observation)}: expected ({OBS_DIM},) "
-                             f"or (N, {OBS_DIM})")
+        if obs.ndim != 2 or obs.shape[1] != self.obs_dim:
+            raise ValueError(f"observation has shape {np.shape(observation)}: expected ({self.obs_dim},) "
+                             f"or (N, {self.obs_dim})")
         n = obs.shape[0]
         if self._n != n:
             mask = np.ones(n, dtype=bool)
