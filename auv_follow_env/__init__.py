@@ -20,6 +20,7 @@ ENV_IDS: tuple[str, ...] = tuple(f"AUVFollow-{s}-v0" for s in SCENARIOS) + ("AUV
 for _name in SCENARIOS:
     if f"AUVFollow-{_name}-v0" not in registry:
         register(id=f"AUVFollow-{_name}-v0", entry_point=_ENTRY, max_episode_steps=_STEPS,
-                 kwargs={"scenario": _name})
+                 vector_entry_point=_VECTOR_ENTRY, kwargs={"scenario": _name})
 if "AUVFollow-v0" not in registry:
-    register(id="AUVFollow-v0", entry_point=_ENTRY, max_episode_steps=_STEPS)
+    register(id="AUVFollow-v0", entry_point=_ENTRY, max_episode_steps=_STEPS,
+             vector_entry_point=_VECTOR_ENTRY)

@@ -1,0 +1,235 @@
+"""AUVFollowVectorEnv: N envs in one Gymnasium ``VectorEnv`` (a batch-of-N shell over BatchSim).
+
+The physics is :mod:`auv_follow_env.dynamics`, stepped for the whole batch by one kernel
+call, exactly as :class:`~auv_follow_env.env.AUVFollowEnv` steps its batch of one. Env ``i``
+of a vector env reset with ``seed=s`` reproduces, bit for bit, a single ``AUVFollowEnv``
+reset with ``seed=s + i`` and then reset without a seed after each of its episodes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from auv_follow_env.env import check_action
+from auv_follow_env.layout import OBS_DIM
+from auv_follow_env.metrics import METRIC_KEYS, tracking_metrics
+from auv_follow_env.params import TaskSpec, make_config
+from auv_follow_env.sim import BatchSim
+
+__all__ = ["AUVFollowVectorEnv"]
+
+_FAST_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+_INFO_KEYS = ("tracking_error", "time", "true_target", "true_reference", "follower_pose")
+
+
+class AUVFollowVectorEnv(VectorEnv):
+    r"""``num_envs`` independent AUVFollow episodes stepped together by the numba kernels.
+
+    The task, spaces, reward, termination and info of each env are those of
+    :class:`~auv_follow_env.env.AUVFollowEnv` (see its docstring); this class only batches
+    them. Made by ``gym.make_vec("AUVFollow-S4-v0", num_envs=N)`` (the registered
+    ``vector_entry_point``) or directly.
+
+    ## Spaces
+
+    ``single_action_space`` / ``single_observation_space`` equal the single env's;
+    ``action_space`` is ``Box(-1, 1, (N, 3), float32)`` and ``observation_space``
+    ``Box(-inf, inf, (N, 16), float32)``. Actions are validated like the single env's:
+    NaN/inf, a wrong shape or a non-numeric dtype raise ``ValueError`` and change nothing.
+
+    ## Seeding
+
+    Each env owns a ``np.random.Generator``, like the sub-envs of ``SyncVectorEnv``:
+    ``reset(seed=s)`` gives env ``i`` the generator ``seeding.np_random(s + i)``; a list
+    of N seeds (ints or ``None``) seeds env ``i`` with ``seed[i]``; ``None`` keeps an env's
+    generator (or draws a random one on the first reset). Every episode of env ``i`` (first
+    reset and autoresets alike) draws its parameters from env ``i``'s generator.
+
+    ## Autoreset
+
+    ``metadata["autoreset_mode"] = AutoresetMode.NEXT_STEP`` (Gymnasium 1.x default): the
+    step after env ``i`` terminated or truncated resets it, ignoring its action, and returns
+    its first observation with reward 0 and ``terminated = truncated = False``. Episodes
+    truncate at ``episode_s`` (``config.n_steps`` steps) inside the env: vector envs have no
+    ``TimeLimit`` wrapper.
+
+    ## Info
+
+    A dict of arrays, each with its Gymnasium boolean mask ``_key``: ``tracking_error``
+    (N,), ``time`` (N,), ``true_target`` (N, 6), ``true_reference`` (N, 3),
+    ``follower_pose`` (N, 3) (after an autoreset, those of the new episode's start). On a
+    step where some episodes ended, ``episode_metrics`` is a dict of (N,) arrays
+    (:data:`~auv_follow_env.metrics.METRIC_KEYS`, NaN for the envs that did not end) and
+    ``_episode_metrics`` marks the envs that did.
+
+    ## Arguments
+
+    ``num_envs`` and the single env's arguments (``scenario``, ``disturbance``, overrides;
+    see :func:`~auv_follow_env.params.make_config`). ``render_mode`` must be ``None``.
+    ``max_episode_steps`` is what ``gym.make_vec`` passes from the registration; it must
+    equal ``episode_s / dt`` (pass it along with ``episode_s`` when you change the latter).
+    """
+
+    metadata = {"render_modes": [], "render_fps": 20, "autoreset_mode": AutoresetMode.NEXT_STEP}
+
+    def __init__(self, num_envs: int = 1, scenario: str = "S4", disturbance: str | None = None,
+                 render_mode: str | None = None, max_episode_steps: int | None = None,
+                 **overrides: Any) -> None:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise ValueError(f"num_envs={num_envs!r} is invalid: must be an integer >= 1")
+        if render_mode is not None:
+            raise ValueError(f"render_mode={render_mode!r} is not supported by the vector env: pass "
+                             f"None (render a single AUVFollowEnv instead)")
+        self.config = make_config(scenario, disturbance, **overrides)
+        n_steps = self.config.n_steps
+        if max_episode_steps is not None and max_episode_steps != n_steps:
+            raise ValueError(
+                f"max_episode_steps={max_episode_steps} disagrees with episode_s={self.config.episode_s} s "
+                f"({n_steps} steps of {self.config.dt} s): pass max_episode_steps={n_steps} to "
+                f"gym.make_vec, or the matching episode_s")
+        self.num_envs = int(num_envs)
+        self.render_mode = None
+        self.task_spec: TaskSpec = self.config.task_spec()
+        self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.config.dt))}
+        self.single_action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
+        self.single_observation_space = spaces.Box(-np.inf, np.inf, (OBS_DIM,), np.float32)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+
+        self._sim = BatchSim(self.config, self.num_envs)
+        self._kernel, self._args = self._sim.step_call()
+        self._n_steps = n_steps
+        self._dt = self.config.dt
+        self._rngs: list[np.random.Generator | None] = [None] * self.num_envs
+        self._autoreset = np.zeros(self.num_envs, dtype=np.bool_)  # ended last step
+        self._autoreset_idx = np.zeros(0, dtype=np.int64)
+        self._started = False
+
+    # --- Gymnasium API --------------------------------------------------------------------
+    def reset(self, *, seed: int | list[int | None] | None = None,
+              options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start new episodes in every env (or in ``options["reset_mask"]``'s envs).
+
+        Args:
+            seed: ``None`` (keep each env's generator), an int ``s`` (env ``i`` gets
+                ``s + i``) or a list of N ints / ``None``.
+            options: optionally ``{"reset_mask": bool array (N,)}``: reset only those envs
+                (as ``SyncVectorEnv``); the info masks mark them.
+
+        Returns:
+            observations (N, 16) float32 and the info dict of arrays.
+        """
+        n = self.num_envs
+        if seed is None:
+            seeds: list = [None] * n
+        elif isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            seeds = [int(seed) + i for i in range(n)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != n:
+                raise ValueError(f"seed is a sequence of length {len(seeds)}: a list of seeds must have "
+                                 f"num_envs={n} entries")
+        mask = np.ones(n, dtype=np.bool_)
+        if options is not None and "reset_mask" in options:
+            mask = options["reset_mask"]
+            if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_ or mask.shape != (n,):
+                raise ValueError(f"options['reset_mask'] must be a bool array of shape ({n},), got {mask!r}")
+            if not mask.any():
+                raise ValueError("options['reset_mask'] resets no env: at least one entry must be True")
+        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            super().reset(seed=int(seed))  # the vector env's own generator (unused by the physics)
+        idx = np.flatnonzero(mask)
+        for i in idx:
+            if seeds[i] is not None or self._rngs[i] is None:
+                self._rngs[i] = seeding.np_random(seeds[i])[0]
+        self._sim.reset(idx, [self._rngs[i] for i in idx])
+        self._autoreset[idx] = False
+        self._autoreset_idx = np.flatnonzero(self._autoreset)
+        self._started = True
+        info = self._info(mask if not mask.all() else None)
+        return self._sim.obs.copy(), info
+
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Advance every env one control step (envs whose episode ended last step reset).
+
+        Args:
+            actions: (N, 3) in [-1, 1] (clipped), any real dtype.
+
+        Returns:
+            observations (N, 16) float32, rewards (N,) float64, terminated (N,) bool,
+            truncated (N,) bool, info dict of arrays.
+
+        Raises:
+            RuntimeError: before the first :meth:`reset`.
+            ValueError: NaN/inf, wrong shape or non-numeric actions (nothing is changed).
+        """
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        n = self.num_envs
+        a = actions
+        if type(a) is not np.ndarray or a.shape != (n, 3) or a.dtype not in _FAST_DTYPES \
+                or not a.flags.c_contiguous:
+            a = check_action(a, (n, 3))
+        ended = self._autoreset_idx
+        if ended.size:  # their actions are ignored (they reset), even if not finite
+            a = a.copy()
+            a[ended] = 0.0
+        flat = a.reshape(-1)
+        sim = self._sim
+        bad = self._kernel(*self._args, flat)
+        if bad >= 0:
+            raise ValueError(f"actions[{bad}]={np.asarray(a[bad]).tolist()} contains NaN or inf: "
+                             f"no env was changed")
+        terminated = sim.term.copy()
+        truncated = sim.k >= self._n_steps
+        truncated &= ~terminated
+        rewards = sim.rew.copy()
+        metrics = None
+        if ended.size:
+            sim.reset(ended, [self._rngs[i] for i in ended])
+            rewards[ended] = 0.0
+            terminated[ended] = False
+            truncated[ended] = False
+        done = terminated | truncated
+        if done.any():
+            metrics = self._episode_metrics(done)
+        self._autoreset = done
+        self._autoreset_idx = np.flatnonzero(done)
+        info = self._info(None)
+        if metrics is not None:
+            info["episode_metrics"], info["_episode_metrics"] = metrics, done.copy()
+        return sim.obs.copy(), rewards, terminated, truncated, info
+
+    def close_extras(self, **kwargs: Any) -> None:
+        """Nothing to release (no renderer, no worker processes)."""
+
+    # --- helpers --------------------------------------------------------------------------
+    def _info(self, mask: np.ndarray | None) -> dict[str, Any]:
+        """The per-step info arrays (views into one fresh copy of the truth array)."""
+        sim = self._sim
+        truth = sim.truth.copy()
+        info: dict[str, Any] = {
+            "tracking_error": truth[:, 12], "time": sim.k * self._dt, "true_target": truth[:, 3:9],
+            "true_reference": truth[:, 9:12], "follower_pose": truth[:, 0:3]}
+        m = np.ones(self.num_envs, dtype=np.bool_) if mask is None else mask
+        for key in _INFO_KEYS:
+            info["_" + key] = m.copy()
+        return info
+
+    def _episode_metrics(self, done: np.ndarray) -> dict[str, np.ndarray]:
+        """The paper's metrics of the episodes that ended (NaN elsewhere), with masks."""
+        out = {key: np.full(self.num_envs, np.nan) for key in METRIC_KEYS}
+        sim = self._sim
+        steady = self.config.steady_start_s
+        for i in np.flatnonzero(done):
+            for key, value in tracking_metrics(*sim.errors(i), steady).items():
+                out[key][i] = value
+        for key in METRIC_KEYS:
+            out["_" + key] = done.copy()
+        return out
