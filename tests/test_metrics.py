@@ -1,0 +1,84 @@
+"""tracking_metrics / window_metrics (eqs. (64)-(65)) on hand-computed arrays."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from auv_follow_env.metrics import METRIC_KEYS, tracking_metrics, window_metrics
+
+
+def test_window_metrics_by_hand():
+    mean, rmse, mx = window_metrics(np.array([3.0, 4.0]))
+    assert mean == 3.5
+    assert rmse == pytest.approx(math.sqrt(12.5), rel=1e-15)
+    assert mx == 4.0
+    # one sample: all three equal it
+    assert window_metrics(np.array([0.25])) == (0.25, 0.25, 0.25)
+
+
+def test_window_metrics_empty_is_nan():
+    assert all(math.isnan(v) for v in window_metrics(np.array([])))
+
+
+def test_tracking_metrics_keys_and_full_window():
+    m = tracking_metrics(np.array([3.0, 4.0]), np.array([0.05, 0.10]), steady_start=10.0)
+    assert tuple(m) == METRIC_KEYS
+    assert m["full_mean"] == 3.5
+    assert m["full_rmse"] == pytest.approx(math.sqrt(12.5))
+    assert m["full_max"] == 4.0
+    # no sample at or after 10 s: the steady window is empty -> NaN
+    assert math.isnan(m["steady_mean"]) and math.isnan(m["steady_rmse"]) and math.isnan(m["steady_max"])
+
+
+def test_steady_window_selected_by_time():
+    e = np.array([10.0, 9.0, 1.0, 2.0, 2.0])
+    t = np.array([8.0, 9.5, 10.0, 11.0, 12.0])
+    m = tracking_metrics(e, t, steady_start=10.0)
+    # full: mean 24/5, rmse sqrt((100 + 81 + 1 + 4 + 4) / 5) = sqrt(38), max 10
+    assert m["full_mean"] == pytest.approx(4.8)
+    assert m["full_rmse"] == pytest.approx(math.sqrt(38.0))
+    assert m["full_max"] == 10.0
+    # steady (t >= 10, the sample at exactly 10 s included): [1, 2, 2]
+    assert m["steady_mean"] == pytest.approx(5.0 / 3.0)
+    assert m["steady_rmse"] == pytest.approx(math.sqrt(3.0))
+    assert m["steady_max"] == 2.0
+    # another start moves the window
+    m2 = tracking_metrics(e, t, steady_start=11.0)
+    assert m2["steady_mean"] == 2.0 and m2["steady_rmse"] == 2.0 and m2["steady_max"] == 2.0
+
+
+def test_steady_window_includes_a_float_rounded_boundary_sample():
+    # 200 * 0.05 = 10.000000000000002 and 0.1 * 100 style rounding must not drop or add t = 10 s
+    dt = 0.05
+    t = dt * np.arange(1, 1201)
+    e = np.where(t < 10.0 - 1e-6, 5.0, 1.0)
+    m = tracking_metrics(e, t, steady_start=10.0)
+    assert m["steady_mean"] == 1.0 and m["steady_max"] == 1.0
+    # 1001 samples from t = 10 s to 60 s inclusive
+    n_full = 1200
+    n_steady = 1001
+    assert m["full_mean"] == pytest.approx((5.0 * (n_full - n_steady) + n_steady) / n_full)
+
+
+def test_rmse_inequality_holds():
+    rng = np.random.default_rng(0)
+    e = rng.random(500)
+    t = np.linspace(0, 60, 500)
+    m = tracking_metrics(e, t)
+    for w in ("full", "steady"):
+        assert m[f"{w}_rmse"] ** 2 <= m[f"{w}_max"] * m[f"{w}_mean"] + 1e-12
+        assert m[f"{w}_mean"] <= m[f"{w}_rmse"] <= m[f"{w}_max"]
+
+
+@pytest.mark.parametrize("e,t", [
+    (np.zeros((2, 2)), np.zeros((2, 2))),
+    (np.zeros(3), np.zeros(4)),
+    (np.zeros(3), np.zeros((3, 1))),
+    (np.float64(1.0), np.float64(1.0)),
+])
+def test_bad_shapes_raise(e, t):
+    with pytest.raises(ValueError, match="1-D"):
+        tracking_metrics(e, t)
