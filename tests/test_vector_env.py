@@ -1,0 +1,275 @@
+"""AUVFollowVectorEnv: batch-vs-single equivalence across resets and autoresets, seeding,
+action validation, the Gymnasium vector API (make_vec, info masks, wrappers)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import data_equivalence
+from gymnasium.vector import AutoresetMode
+from gymnasium.wrappers.vector import DictInfoToList, RecordEpisodeStatistics
+
+import auv_follow_env
+from auv_follow_env.metrics import METRIC_KEYS
+from auv_follow_env.vector_env import AUVFollowVectorEnv
+
+ID = "AUVFollow-S4-v0"
+SHORT = {"episode_s": 2.0, "max_episode_steps": 40}  # 40 steps: several autoresets per test
+TERMINATING = {**SHORT, "max_distance_m": 2.5}  # random forces drift past 2.5 m at various steps
+INFO_KEYS = ("tracking_error", "time", "true_target", "true_reference", "follower_pose")
+
+
+def _actions(steps: int, n: int, seed: int = 1) -> np.ndarray:
+    """Random actions, partly outside [-1, 1] so clipping is exercised."""
+    return np.random.default_rng(seed).uniform(-1.2, 1.2, (steps, n, 3)).astype(np.float32)
+
+
+def _vec(n: int, kwargs: dict, env_id: str = ID) -> gym.vector.VectorEnv:
+    return gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", **kwargs)
+
+
+def _single_rollout(env: gym.Env, seed: int, actions: np.ndarray) -> list[tuple]:
+    """Env driven with next-step autoreset by hand: reset(seed) once, then reset() after each end."""
+    obs, info = env.reset(seed=seed)
+    out = [(obs, None, False, False, info)]
+    done = False
+    for a in actions:
+        if done:
+            obs, info = env.reset()
+            out.append((obs, 0.0, False, False, info))
+            done = False
+        else:
+            obs, rew, term, trunc, info = env.step(a)
+            out.append((obs, rew, term, trunc, info))
+            done = term or trunc
+    return out
+
+
+def _vec_rollout(venv: gym.vector.VectorEnv, seed, actions: np.ndarray) -> list[tuple]:
+    obs, info = venv.reset(seed=seed)
+    out = [(obs, None, None, None, info)]
+    for a in actions:
+        out.append(venv.step(a))
+    return out
+
+
+def _assert_env_matches(vec: list[tuple], single: list[tuple], i: int) -> int:
+    """Env i of a vector rollout equals a single-env rollout, bit for bit; returns #episode ends."""
+    ends = 0
+    for t, ((vo, vr, vte, vtr, vinfo), (so, sr, ste, str_, sinfo)) in enumerate(zip(vec, single, strict=True)):
+        where = f"env {i}, step {t}"
+        np.testing.assert_array_equal(vo[i], so, err_msg=where)
+        if t > 0:
+            assert vr[i] == sr, where
+            assert vte[i] == ste and vtr[i] == str_, where
+        for key in INFO_KEYS:
+            np.testing.assert_array_equal(vinfo[key][i], sinfo[key], err_msg=f"{where}, {key}")
+            assert vinfo[f"_{key}"][i]
+        ended = "episode_metrics" in sinfo
+        assert bool(vinfo.get("_episode_metrics", np.zeros(len(vo), bool))[i]) == ended, where
+        if ended:
+            ends += 1
+            for key in METRIC_KEYS:
+                np.testing.assert_array_equal(vinfo["episode_metrics"][key][i], sinfo["episode_metrics"][key],
+                                              err_msg=f"{where}, {key}")
+        elif "episode_metrics" in vinfo:
+            assert all(np.isnan(vinfo["episode_metrics"][key][i]) for key in METRIC_KEYS)
+    return ends
+
+
+@pytest.mark.parametrize("kwargs, steps", [(SHORT, 130), (TERMINATING, 130)], ids=["truncation", "termination"])
+def test_every_env_reproduces_the_single_env_across_autoresets(kwargs, steps):
+    n, seed = 5, 11
+    actions = _actions(steps, n)
+    vec = _vec_rollout(_vec(n, kwargs), seed, actions)
+    terms = truncs = 0
+    for i in range(n):
+        single = _single_rollout(gym.make(ID, **kwargs), seed + i, actions[:, i])
+        assert _assert_env_matches(vec, single, i) >= 2
+        terms += sum(bool(s[2]) for s in single)
+        truncs += sum(bool(s[3]) for s in single)
+    assert truncs >= 2
+    if kwargs is TERMINATING:
+        assert terms >= 3  # terminations at different steps in different envs
+
+
+def test_vector_entry_point_equals_sync_vector_env():
+    n, seed, steps = 4, 3, 90
+    actions = _actions(steps, n, seed=7)
+    native = _vec_rollout(_vec(n, TERMINATING), seed, actions)
+    sync = _vec_rollout(gym.make_vec(ID, num_envs=n, vectorization_mode="sync", **TERMINATING), seed, actions)
+    ends = 0
+    for t, (a, b) in enumerate(zip(native, sync, strict=True)):
+        for x, y in zip(a[:4], b[:4], strict=True):
+            if t > 0 or x is not None:
+                assert data_equivalence(x, y, exact=True), f"step {t}"
+        ia, ib = a[4], b[4]
+        assert set(ia) == set(ib), f"step {t}"
+        for key in INFO_KEYS:
+            assert data_equivalence(ia[key], ib[key], exact=True), f"step {t}, {key}"
+            assert data_equivalence(ia[f"_{key}"], ib[f"_{key}"], exact=True)
+        if "episode_metrics" in ib:
+            mask = ib["_episode_metrics"]
+            np.testing.assert_array_equal(ia["_episode_metrics"], mask)
+            ends += int(mask.sum())
+            for key in METRIC_KEYS:
+                np.testing.assert_array_equal(ia["episode_metrics"][key][mask], ib["episode_metrics"][key][mask])
+                np.testing.assert_array_equal(ia["episode_metrics"][f"_{key}"], mask)
+    assert ends >= 4
+
+
+def test_seed_list_and_unseeded_resets_continue_each_envs_generator():
+    n = 3
+    seeds = [42, 7, 42]
+    venv = AUVFollowVectorEnv(num_envs=n, scenario="S2", **SHORT)
+    singles = [gym.make("AUVFollow-S2-v0", **SHORT) for _ in range(n)]
+    obs, _ = venv.reset(seed=seeds)
+    for i in range(n):
+        np.testing.assert_array_equal(obs[i], singles[i].reset(seed=seeds[i])[0])
+    np.testing.assert_array_equal(obs[0], obs[2])  # same seed, same episode
+    for _ in range(3):  # explicit unseeded resets draw the next episode from each env's generator
+        obs, _ = venv.reset()
+        for i in range(n):
+            np.testing.assert_array_equal(obs[i], singles[i].reset()[0])
+    obs, _ = venv.reset(seed=[None, 5, None])  # None keeps that env's generator
+    np.testing.assert_array_equal(obs[0], singles[0].reset()[0])
+    np.testing.assert_array_equal(obs[1], singles[1].reset(seed=5)[0])
+    with pytest.raises(ValueError, match="num_envs=3"):
+        venv.reset(seed=[1, 2])
+
+
+def test_reset_mask_resets_only_those_envs():
+    n = 3
+    venv = AUVFollowVectorEnv(num_envs=n, **SHORT)
+    venv.reset(seed=0)
+    for a in _actions(5, n):
+        obs, *_ = venv.step(a)
+    mask = np.array([False, True, False])
+    obs2, info = venv.reset(seed=20, options={"reset_mask": mask})
+    np.testing.assert_array_equal(obs2[[0, 2]], obs[[0, 2]])
+    np.testing.assert_array_equal(obs2[1], gym.make(ID, **SHORT).reset(seed=21)[0])
+    np.testing.assert_array_equal(info["_tracking_error"], mask)
+    assert info["time"][1] == 0.0 and info["time"][0] == pytest.approx(0.25)
+
+
+@pytest.mark.parametrize("bad, match", [
+    ("nan", "NaN or inf"), ("inf", "NaN or inf"), ("shape", "shape"), ("flat", "shape"),
+    ("str", "dtype"), ("bool", "dtype"), ("object", "dtype|numeric")])
+def test_bad_actions_raise_and_change_nothing(bad, match):
+    n = 3
+    venv = AUVFollowVectorEnv(num_envs=n, **SHORT)
+    twin = AUVFollowVectorEnv(num_envs=n, **SHORT)
+    venv.reset(seed=4)
+    twin.reset(seed=4)
+    good = _actions(2, n)
+    venv.step(good[0])
+    twin.step(good[0])
+    sim = venv.unwrapped._sim
+    before = {k: getattr(sim, k).copy() for k in ("state", "k", "buf", "obs", "truth", "rew", "term")}
+    action = good[1].astype(np.float64)
+    if bad == "nan":
+        action[1, 2] = np.nan
+    elif bad == "inf":
+        action[2, 0] = -np.inf
+    elif bad == "shape":
+        action = action[:, :2]
+    elif bad == "flat":
+        action = action.ravel()
+    elif bad == "str":
+        action = np.full((n, 3), "a")
+    elif bad == "bool":
+        action = np.ones((n, 3), dtype=bool)
+    else:
+        action = [[object()] * 3] * n
+    with pytest.raises(ValueError, match=match):
+        venv.step(action)
+    for k, v in before.items():
+        np.testing.assert_array_equal(getattr(sim, k), v, err_msg=k)
+    a, b = venv.step(good[1]), twin.step(good[1])
+    assert data_equivalence(a, b, exact=True)
+
+
+def test_actions_of_envs_being_autoreset_are_ignored_like_sync():
+    n = 2
+    venv = AUVFollowVectorEnv(num_envs=n, **SHORT)
+    venv.reset(seed=0)
+    zeros = np.zeros((n, 3))
+    for _ in range(40):
+        *_, trunc, _ = venv.step(zeros)
+    assert trunc.all()
+    obs, rew, term, trunc, info = venv.step(np.full((n, 3), np.nan))  # resets: actions unused
+    np.testing.assert_array_equal(rew, 0.0)
+    assert not term.any() and not trunc.any()
+    np.testing.assert_array_equal(info["time"], 0.0)
+    for i in range(n):  # the second episode of a single env seeded i
+        single = gym.make(ID, **SHORT)
+        single.reset(seed=i)
+        np.testing.assert_array_equal(obs[i], single.reset()[0])
+
+
+def test_accepts_other_dtypes_layouts_and_lists():
+    n = 2
+    a = _actions(1, n)[0]
+    ref = AUVFollowVectorEnv(num_envs=n)
+    ref.reset(seed=1)
+    expected = ref.step(a)
+    for variant in (a.astype(np.float64), np.asfortranarray(a), a.tolist(), a[:, ::-1].copy()[:, ::-1]):
+        venv = AUVFollowVectorEnv(num_envs=n)
+        venv.reset(seed=1)
+        assert data_equivalence(venv.step(variant), expected, exact=True)
+
+
+def test_spaces_spec_metadata_and_returned_data_not_reused():
+    venv = _vec(4, {"disturbance": "L1", **SHORT}, env_id="AUVFollow-v0")
+    single = gym.make("AUVFollow-v0", disturbance="L1", **SHORT)
+    assert isinstance(venv, AUVFollowVectorEnv)
+    assert venv.metadata["autoreset_mode"] is AutoresetMode.NEXT_STEP
+    assert venv.single_action_space == single.action_space
+    assert venv.single_observation_space == single.observation_space
+    assert venv.action_space.shape == (4, 3) and venv.observation_space.shape == (4, 16)
+    assert venv.task_spec == single.unwrapped.task_spec
+    assert venv.task_spec.disturbance == "L1" and venv.task_spec.n_steps == 40
+    assert venv.spec.id == "AUVFollow-v0" and venv.spec.kwargs["num_envs"] == 4
+    obs, info = venv.reset(seed=0)
+    assert venv.observation_space.contains(obs)
+    snapshot = (obs.copy(), info["tracking_error"].copy())
+    out = venv.step(venv.action_space.sample())
+    out2 = venv.step(venv.action_space.sample())
+    np.testing.assert_array_equal(obs, snapshot[0])
+    np.testing.assert_array_equal(info["tracking_error"], snapshot[1])
+    assert not np.shares_memory(out[0], out2[0]) and not np.shares_memory(out[1], out2[1])
+    assert out[1].dtype == np.float64 and out[2].dtype == np.bool_ and out[3].dtype == np.bool_
+
+
+def test_registered_for_every_id_and_arguments_validated():
+    for env_id in auv_follow_env.ENV_IDS:
+        assert gym.spec(env_id).vector_entry_point == "auv_follow_env.vector_env:AUVFollowVectorEnv"
+        venv = gym.make_vec(env_id, num_envs=2)  # the default mode is the vector entry point
+        assert isinstance(venv, AUVFollowVectorEnv)
+        venv.close()
+    with pytest.raises(ValueError, match="max_episode_steps=1200 disagrees"):
+        _vec(2, {"episode_s": 2.0})
+    with pytest.raises(ValueError, match="unknown override"):
+        _vec(2, {"delay": 1.0})
+    with pytest.raises(ValueError, match="render_mode"):
+        AUVFollowVectorEnv(num_envs=2, render_mode="rgb_array")
+    with pytest.raises(ValueError, match="num_envs"):
+        AUVFollowVectorEnv(num_envs=0)
+    with pytest.raises(RuntimeError, match="reset"):
+        AUVFollowVectorEnv(num_envs=2).step(np.zeros((2, 3)))
+
+
+def test_gymnasium_vector_wrappers_read_the_infos():
+    n = 3
+    venv = RecordEpisodeStatistics(_vec(n, SHORT))
+    venv.reset(seed=0)
+    for a in _actions(41, n):
+        _, _, term, trunc, info = venv.step(a)
+        if (term | trunc).any():
+            assert info["_episode"].all() and np.all(info["episode"]["l"] == 40)
+    listed = DictInfoToList(_vec(n, SHORT))
+    listed.reset(seed=0)
+    for a in _actions(40, n):
+        *_, infos = listed.step(a)
+    assert len(infos) == n and all(set(METRIC_KEYS) <= set(d["episode_metrics"]) for d in infos)
