@@ -25,6 +25,35 @@ from auv_follow_env.sim import BatchSim
 __all__ = ["AUVFollowVectorEnv"]
 
 _FAST_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+_parallel_step = None  # compiled on first use of parallel=True only (no threads otherwise)
+
+
+def _get_parallel_step():
+    """``step(state, k, buf, p, cfg, obs, truth, err_hist, rew, term, action)`` over threads.
+
+    The same :func:`~auv_follow_env.dynamics.step_kernel`, called on contiguous chunks of
+    the batch from a ``prange`` loop: no second copy of the physics. The caller checks the
+    actions' finiteness first (a chunk cannot undo its neighbours).
+    """
+    global _parallel_step
+    if _parallel_step is None:
+        import numba
+        from numba import njit, prange
+
+        from auv_follow_env.dynamics import step_kernel
+
+        @njit(cache=True, parallel=True)
+        def step_chunks(state, k, buf, p, cfg, obs, truth, err_hist, rew, term, action, chunks):
+            n = state.shape[0]
+            for c in prange(chunks):
+                a = c * n // chunks
+                b = (c + 1) * n // chunks
+                if b > a:
+                    step_kernel(state[a:b], k[a:b], buf[a:b], p[a:b], cfg, obs[a:b], truth[a:b],
+                                err_hist[a:b], rew[a:b], term[a:b], action[3 * a:3 * b])
+
+        _parallel_step = (step_chunks, numba)
+    return _parallel_step
 _INFO_KEYS = ("tracking_error", "time", "true_target", "true_reference", "follower_pose")
 
 
@@ -74,13 +103,16 @@ class AUVFollowVectorEnv(VectorEnv):
     see :func:`~auv_follow_env.params.make_config`). ``render_mode`` must be ``None``.
     ``max_episode_steps`` is what ``gym.make_vec`` passes from the registration; it must
     equal ``episode_s / dt`` (pass it along with ``episode_s`` when you change the latter).
+    ``parallel=True`` (off by default) steps chunks of the batch on numba's threads; the
+    results are bit-identical, the speed-up at most the number of cores (worth it only for
+    large N; the first use compiles a parallel wrapper).
     """
 
     metadata = {"render_modes": [], "render_fps": 20, "autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(self, num_envs: int = 1, scenario: str = "S4", disturbance: str | None = None,
                  render_mode: str | None = None, max_episode_steps: int | None = None,
-                 **overrides: Any) -> None:
+                 parallel: bool = False, **overrides: Any) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs={num_envs!r} is invalid: must be an integer >= 1")
         if render_mode is not None:
@@ -104,6 +136,11 @@ class AUVFollowVectorEnv(VectorEnv):
 
         self._sim = BatchSim(self.config, self.num_envs)
         self._kernel, self._args = self._sim.step_call()
+        self.parallel = bool(parallel)
+        if self.parallel:
+            step_chunks, numba = _get_parallel_step()
+            chunks = 4 * numba.get_num_threads()  # a few chunks per thread balance the load
+            self._parallel = (step_chunks, chunks)
         self._n_steps = n_steps
         self._dt = self.config.dt
         self._rngs: list[np.random.Generator | None] = [None] * self.num_envs
@@ -182,7 +219,14 @@ class AUVFollowVectorEnv(VectorEnv):
             a[ended] = 0.0
         flat = a.reshape(-1)
         sim = self._sim
-        bad = self._kernel(*self._args, flat)
+        if self.parallel:
+            bad = -1
+            if not np.isfinite(flat).all():
+                bad = int(np.flatnonzero(~np.isfinite(flat))[0]) // 3
+            else:
+                self._parallel[0](*self._args, flat, self._parallel[1])
+        else:
+            bad = self._kernel(*self._args, flat)
         if bad >= 0:
             raise ValueError(f"actions[{bad}]={np.asarray(a[bad]).tolist()} contains NaN or inf: "
                              f"no env was changed")

@@ -119,6 +119,28 @@ def test_vector_entry_point_equals_sync_vector_env():
     assert ends >= 4
 
 
+def test_parallel_option_is_bit_identical():
+    n, steps = 6, 60
+    actions = _actions(steps, n, seed=5)
+    serial = _vec_rollout(_vec(n, TERMINATING), 2, actions)
+    threaded = _vec(n, {**TERMINATING, "parallel": True})
+    assert threaded.unwrapped.parallel
+    for t, (a, b) in enumerate(zip(serial, _vec_rollout(threaded, 2, actions), strict=True)):
+        for x, y in zip(a[:4], b[:4], strict=True):
+            assert x is None or np.array_equal(x, y), f"step {t}"
+        for key in INFO_KEYS:
+            np.testing.assert_array_equal(a[4][key], b[4][key])
+        if "episode_metrics" in a[4]:
+            for key in METRIC_KEYS:
+                np.testing.assert_array_equal(a[4]["episode_metrics"][key], b[4]["episode_metrics"][key])
+    before = threaded.unwrapped._sim.state.copy()
+    bad = actions[0].copy()
+    bad[4, 1] = np.nan
+    with pytest.raises(ValueError, match=r"actions\[4\]"):
+        threaded.step(bad)
+    np.testing.assert_array_equal(threaded.unwrapped._sim.state, before)
+
+
 def test_seed_list_and_unseeded_resets_continue_each_envs_generator():
     n = 3
     seeds = [42, 7, 42]
