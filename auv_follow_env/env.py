@@ -100,7 +100,10 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ## Episode End
 
-    Truncation after ``episode_s`` (60 s = 1200 steps; registered as ``max_episode_steps``).
+    Truncation after ``episode_s`` (60 s = 1200 steps by default), done by the env itself:
+    the ids register no ``max_episode_steps``, so changing ``episode_s`` or ``dt`` through
+    ``gym.make`` just works. (A ``max_episode_steps`` passed to ``gym.make`` adds Gymnasium's
+    TimeLimit on top; one shorter than the episode ends it without ``episode_metrics``.)
     Termination when the follower is more than ``max_distance_m`` (20 m) from the true
     reference, or the state is not finite.
 
@@ -133,8 +136,7 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
     ``gym.make("AUVFollow-v0", scenario="S2")``. Overrides: ``delay_s``, ``episode_s``,
     ``dt`` (0.05 s), ``physics_substeps`` (2), ``mismatch``, ``force_limits``,
     ``init_offset_m``, ``max_distance_m``, ``effort_weight``, ``p_d``, ``psi_d``,
-    ``steady_start_s``; see :class:`~auv_follow_env.params.EnvConfig`. If you change
-    ``episode_s`` through ``gym.make``, pass the matching ``max_episode_steps`` too.
+    ``steady_start_s``; see :class:`~auv_follow_env.params.EnvConfig`.
 
     ## Version History
 
@@ -163,12 +165,6 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        spec = self.spec
-        if spec is not None and spec.max_episode_steps not in (None, self._n_steps):
-            raise ValueError(
-                f"max_episode_steps={spec.max_episode_steps} disagrees with episode_s="
-                f"{self.config.episode_s} s ({self._n_steps} steps of {self.config.dt} s): pass "
-                f"max_episode_steps={self._n_steps} to gym.make, or the matching episode_s")
         self._sim.reset(_IDX0, [self.np_random])
         self._started = True
         if self.render_mode is not None:

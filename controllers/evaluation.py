@@ -34,6 +34,10 @@ TRAJECTORY_COLUMNS: tuple[str, ...] = (
     "F_u", "F_v", "F_r")
 
 
+#: gym.make keywords that are not env configuration
+_MAKE_ONLY_KWARGS = frozenset({"max_episode_steps", "disable_env_checker", "render_mode", "autoreset"})
+
+
 def _check_seeds(seeds: Iterable[int]) -> list[int]:
     out = []
     for s in seeds:
@@ -146,7 +150,8 @@ def evaluate_controllers(names: Sequence[str] | None = None,
     ms, ts = [], []
     for sc, n in tqdm(jobs, desc="controllers x scenarios", disable=not progress):
         env_id = f"AUVFollow-{sc}-v0"
-        spec = auv_follow_env.make_task_spec(sc, **(env_kwargs or {}))
+        spec = auv_follow_env.make_task_spec(sc, **{k: v for k, v in (env_kwargs or {}).items()
+                                                     if k not in _MAKE_ONLY_KWARGS})
         out = evaluate(make_controller(n, spec), env_id, seeds, env_kwargs=env_kwargs,
                        trajectories=trajectories, progress=False)
         if trajectories:

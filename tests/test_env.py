@@ -68,7 +68,7 @@ def test_env_ids():
     assert set(auv_follow_env.ENV_IDS) == {"AUVFollow-S1-v0", "AUVFollow-S2-v0", "AUVFollow-S3-v0",
                                            "AUVFollow-S4-v0", "AUVFollow-v0"}
     for env_id in auv_follow_env.ENV_IDS:
-        assert gym.spec(env_id).max_episode_steps == N_STEPS
+        assert gym.spec(env_id).max_episode_steps is None  # the env truncates itself (see __init__)
 
 
 def test_make_with_module_prefix_in_fresh_process():
@@ -80,7 +80,7 @@ def test_make_with_module_prefix_in_fresh_process():
             "print(obs.shape, env.unwrapped.task_spec.scenario, env.spec.max_episode_steps)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "(16,) S4 1200"
+    assert out.stdout.strip() == "(16,) S4 None"
 
 
 def test_overrides_through_make():
@@ -204,7 +204,7 @@ def test_bad_action_raises_and_changes_nothing(label, action, match):
         np.testing.assert_array_equal(o1, o2)
         assert (r1, t1, u1, i1["time"]) == (r2, t2, u2, i2["time"])
     # the TimeLimit count was not advanced by the failed call
-    assert env._elapsed_steps == twin._elapsed_steps == 20
+    assert int(env.unwrapped._sim.k[0]) == int(twin.unwrapped._sim.k[0]) == 20
 
 
 def test_bad_action_partial_nan_in_float64_list():
@@ -293,30 +293,18 @@ def test_bad_config_raises(kw, match):
         AUVFollowEnv(**kw)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "BUG env.py reset(): the check reads env.unwrapped.spec.max_episode_steps, which gym.make "
-    "(Gymnasium >= 1.0) always sets to None; the TimeLimit's value is invisible to the env"))
-@pytest.mark.parametrize("kw", [dict(episode_s=30.0), dict(dt=0.1), dict(episode_s=120.0)])
-def test_max_episode_steps_inconsistent_with_episode_raises_at_reset(kw):
-    env = gym.make(S4, **kw)
-    with pytest.raises(ValueError, match="max_episode_steps"):
-        env.reset(seed=0)
-
-
-@pytest.mark.xfail(strict=True, reason="same bug: TimeLimit (1200) < episode_s / dt (2400) goes unnoticed")
-def test_longer_episode_than_time_limit_is_caught():
-    """What the dead check lets through: TimeLimit cuts at 1200 steps, the env thinks the
-    episode is 2400 steps long, so the last step carries no episode_metrics. Either reset
-    must refuse this combination or the final step must carry the metrics."""
-    env = gym.make(S4, episode_s=120.0, max_distance_m=1e3)
-    try:
-        env.reset(seed=0)
-    except ValueError:
-        return
+@pytest.mark.parametrize("kw,steps", [(dict(episode_s=120.0), 2400), (dict(dt=0.1), 600)])
+def test_overridden_episode_length_runs_to_its_end_with_metrics(kw, steps):
+    """episode_s / dt through gym.make: the env truncates itself at episode_s / dt steps
+    (no registered TimeLimit can cut it short) and the last step carries the metrics."""
+    env = gym.make(S4, max_distance_m=1e3, **kw)
+    env.reset(seed=0)
     a = np.zeros(3, dtype=np.float32)
-    for _ in range(N_STEPS):
-        _, _, _, trunc, info = env.step(a)
-    assert trunc and "episode_metrics" in info
+    for k in range(1, steps + 1):
+        _, _, term, trunc, info = env.step(a)
+        assert not term and trunc == (k == steps)
+        assert ("episode_metrics" in info) == (k == steps)
+    assert info["time"] == pytest.approx(steps * env.unwrapped.config.dt)
 
 
 def test_shorter_episode_than_time_limit_truncates_at_episode_s():

@@ -144,10 +144,6 @@ def test_evaluate_controllers_one_scenario_short_episode():
     assert np.isfinite(m[list(METRIC_COLUMNS)].to_numpy()).all()
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "controllers/evaluation.py:149 passes env_kwargs unchanged to make_task_spec, which rejects "
-    "gym.make's max_episode_steps (ValueError: unknown override(s) ['max_episode_steps']); the env "
-    "docs ask for the matching max_episode_steps whenever episode_s changes"))
 def test_evaluate_controllers_accepts_max_episode_steps():
     m = evaluate_controllers(scenarios=["S1"], env_kwargs=SHORT, progress=False)
     assert list(m["policy"]) == ["PID", "ROBUST_ONLY", "PRED_ONLY", "PROPOSED"]

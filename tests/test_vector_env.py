@@ -120,23 +120,24 @@ def test_vector_entry_point_equals_sync_vector_env():
 
 
 def test_parallel_option_is_bit_identical():
-    n, steps = 6, 60
+    n, steps = 300, 45  # >= 256 envs, or parallel=True stays serial
     actions = _actions(steps, n, seed=5)
     serial = _vec_rollout(_vec(n, TERMINATING), 2, actions)
     threaded = _vec(n, {**TERMINATING, "parallel": True})
-    assert threaded.unwrapped.parallel
+    assert threaded.unwrapped._parallel is not None
     for t, (a, b) in enumerate(zip(serial, _vec_rollout(threaded, 2, actions), strict=True)):
         for x, y in zip(a[:4], b[:4], strict=True):
             assert x is None or np.array_equal(x, y), f"step {t}"
         for key in INFO_KEYS:
             np.testing.assert_array_equal(a[4][key], b[4][key])
+        assert ("episode_metrics" in a[4]) == ("episode_metrics" in b[4])
         if "episode_metrics" in a[4]:
             for key in METRIC_KEYS:
                 np.testing.assert_array_equal(a[4]["episode_metrics"][key], b[4]["episode_metrics"][key])
     before = threaded.unwrapped._sim.state.copy()
     bad = actions[0].copy()
-    bad[4, 1] = np.nan
-    with pytest.raises(ValueError, match=r"actions\[4\]"):
+    bad[250, 1] = np.nan
+    with pytest.raises(ValueError, match=r"actions\[250\]"):
         threaded.step(bad)
     np.testing.assert_array_equal(threaded.unwrapped._sim.state, before)
 
@@ -271,7 +272,7 @@ def test_registered_for_every_id_and_arguments_validated():
         assert isinstance(venv, AUVFollowVectorEnv)
         venv.close()
     with pytest.raises(ValueError, match="max_episode_steps=1200 disagrees"):
-        _vec(2, {"episode_s": 2.0})
+        _vec(2, {"episode_s": 2.0, "max_episode_steps": 1200})
     with pytest.raises(ValueError, match="unknown override"):
         _vec(2, {"delay": 1.0})
     with pytest.raises(ValueError, match="render_mode"):
