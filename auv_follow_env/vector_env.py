@@ -25,6 +25,7 @@ from auv_follow_env.sim import BatchSim
 __all__ = ["AUVFollowVectorEnv"]
 
 _FAST_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+_MIN_CHUNK = 128  # fewest envs per thread chunk (~0.14 ms of physics); smaller batches step serially
 _parallel_step = None  # compiled on first use of parallel=True only (no threads otherwise)
 
 
@@ -104,8 +105,9 @@ class AUVFollowVectorEnv(VectorEnv):
     ``max_episode_steps`` is what ``gym.make_vec`` passes from the registration; it must
     equal ``episode_s / dt`` (pass it along with ``episode_s`` when you change the latter).
     ``parallel=True`` (off by default) steps chunks of the batch on numba's threads; the
-    results are bit-identical, the speed-up at most the number of cores (worth it only for
-    large N; the first use compiles a parallel wrapper).
+    results are bit-identical, the speed-up at most the number of free cores; batches under
+    256 envs stay serial (thread wake-up would cost more than the physics). The first use
+    compiles a parallel wrapper.
     """
 
     metadata = {"render_modes": [], "render_fps": 20, "autoreset_mode": AutoresetMode.NEXT_STEP}
@@ -137,10 +139,14 @@ class AUVFollowVectorEnv(VectorEnv):
         self._sim = BatchSim(self.config, self.num_envs)
         self._kernel, self._args = self._sim.step_call()
         self.parallel = bool(parallel)
+        self._parallel = None
         if self.parallel:
             step_chunks, numba = _get_parallel_step()
-            chunks = 4 * numba.get_num_threads()  # a few chunks per thread balance the load
-            self._parallel = (step_chunks, chunks)
+            # a few chunks per thread balance the load; below _MIN_CHUNK envs per chunk the
+            # threads' wake-up costs more than the physics, so small batches stay serial
+            chunks = min(4 * numba.get_num_threads(), self.num_envs // _MIN_CHUNK)
+            if chunks >= 2:
+                self._parallel = (step_chunks, chunks)
         self._n_steps = n_steps
         self._dt = self.config.dt
         self._rngs: list[np.random.Generator | None] = [None] * self.num_envs
@@ -219,7 +225,7 @@ class AUVFollowVectorEnv(VectorEnv):
             a[ended] = 0.0
         flat = a.reshape(-1)
         sim = self._sim
-        if self.parallel:
+        if self._parallel is not None:
             bad = -1
             if not np.isfinite(flat).all():
                 bad = int(np.flatnonzero(~np.isfinite(flat))[0]) // 3
