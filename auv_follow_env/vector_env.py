@@ -185,6 +185,8 @@ class AUVFollowVectorEnv(VectorEnv):
                 raise ValueError(f"options['reset_mask'] must be a bool array of shape ({n},), got {mask!r}")
             if not mask.any():
                 raise ValueError("options['reset_mask'] resets no env: at least one entry must be True")
+            if not self._started and not mask.all():
+                raise ValueError("options['reset_mask'] must select every env on the first reset")
         if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
             super().reset(seed=int(seed))  # the vector env's own generator (unused by the physics)
         idx = np.flatnonzero(mask)

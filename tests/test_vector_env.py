@@ -165,6 +165,8 @@ def test_seed_list_and_unseeded_resets_continue_each_envs_generator():
 def test_reset_mask_resets_only_those_envs():
     n = 3
     venv = AUVFollowVectorEnv(num_envs=n, **SHORT)
+    with pytest.raises(ValueError, match="first reset"):
+        venv.reset(options={"reset_mask": np.array([True, False, True])})
     venv.reset(seed=0)
     for a in _actions(5, n):
         obs, *_ = venv.step(a)
