@@ -1,0 +1,154 @@
+"""Residual reinforcement learning on top of a scripted controller.
+
+:class:`ResidualWrapper` turns an AUVFollow env into the env a residual agent sees: the
+wrapper owns one of the paper's controllers (``PROPOSED`` by default), asks it for its
+action on every observation, and applies
+
+    a = clip(a_base + scale * a_residual, -1, 1)
+
+where ``a_residual`` in [-1, 1]^3 is the agent's action. A zero residual therefore
+reproduces the base controller's trajectory bit for bit.
+
+The agent's observation is the env's 16 fields, then (optionally) the base action (3), then
+(optionally) a short history of the delayed target's body velocities: for lags
+``j * history_stride`` steps, j = 1..history_len, the difference
+``(target_{u,v,r}(k) - target_{u,v,r}(k - lag)) / (lag * dt)`` [m/s^2, m/s^2, rad/s^2] -
+finite-difference accelerations of the delayed target, which is what a first-order
+predictor (eqs. (13)-(17)) misses: the true present target is roughly the delayed one
+extrapolated with its acceleration over the delay. Lags reaching before the episode's
+start use the first observation (difference 0).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from auv_follow_env.layout import OBS_DIM, obs_slice
+from controllers import CONTROLLERS, make_controller
+
+__all__ = ["ResidualWrapper", "residual_obs_dim", "make_residual_wrapper"]
+
+_TARGET_VEL = obs_slice("target_u", "target_r")
+
+#: defaults, written once (used by the wrapper, the CLI and the benchmark)
+DEFAULT_CONTROLLER = "PROPOSED"
+DEFAULT_SCALE = 0.2  # residual authority: 0.2 of the force limits (30 N surge/sway, 6 N m yaw)
+DEFAULT_HISTORY_LEN = 4  # number of lagged samples of the delayed target velocity
+DEFAULT_HISTORY_STRIDE = 10  # steps between lagged samples (0.5 s at dt = 0.05 s)
+
+
+def residual_obs_dim(include_base_action: bool = True, history_len: int = DEFAULT_HISTORY_LEN) -> int:
+    """Width of the wrapped observation."""
+    return OBS_DIM + (3 if include_base_action else 0) + 3 * history_len
+
+
+def _check(controller: str, scale: float, history_len: int, history_stride: int) -> None:
+    if controller not in CONTROLLERS:
+        raise ValueError(f"controller={controller!r} is unknown: valid controllers are {list(CONTROLLERS)}")
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale={scale!r} is invalid: must be a finite number > 0 (fraction of the force limits)")
+    if isinstance(history_len, bool) or not isinstance(history_len, (int, np.integer)) or history_len < 0:
+        raise ValueError(f"history_len={history_len!r} is invalid: must be an integer >= 0")
+    if isinstance(history_stride, bool) or not isinstance(history_stride, (int, np.integer)) or history_stride < 1:
+        raise ValueError(f"history_stride={history_stride!r} is invalid: must be an integer >= 1")
+
+
+class ResidualWrapper(gym.Wrapper):
+    """Residual action on top of a scripted controller, with an augmented observation.
+
+    Args:
+        env: an AUVFollow env (``gym.make("AUVFollow-S4-v0")``, possibly wrapped by Monitor
+            or TimeLimit); its ``unwrapped.task_spec`` configures the base controller.
+        controller: base controller name, one of ``controllers.CONTROLLERS``.
+        scale: residual authority as a fraction of the force limits (default 0.2).
+        include_base_action: append the base action (3) to the observation (default True).
+        history_len: number K of lagged delayed-target velocity differences (default 4;
+            0 disables the history).
+        history_stride: steps between lagged samples (default 10 = 0.5 s).
+
+    Raises:
+        ValueError: unknown controller or invalid scale / history settings.
+    """
+
+    def __init__(self, env: gym.Env, controller: str = DEFAULT_CONTROLLER, scale: float = DEFAULT_SCALE,
+                 include_base_action: bool = True, history_len: int = DEFAULT_HISTORY_LEN,
+                 history_stride: int = DEFAULT_HISTORY_STRIDE) -> None:
+        super().__init__(env)
+        _check(controller, scale, history_len, history_stride)
+        if env.observation_space.shape != (OBS_DIM,):
+            raise ValueError(f"env observation shape {env.observation_space.shape} is not the AUVFollow "
+                             f"layout ({OBS_DIM},): apply ResidualWrapper to an AUVFollow env")
+        spec = env.unwrapped.task_spec
+        self.controller_name = controller
+        self.base = make_controller(controller, spec)
+        self.scale = float(scale)
+        self.include_base_action = bool(include_base_action)
+        self.history_len = int(history_len)
+        self.history_stride = int(history_stride)
+        self._dt = float(spec.dt)
+        self._buf_len = self.history_len * self.history_stride + 1
+        self._buf = np.zeros((self._buf_len, 3))
+        self._k = 0
+        self._base_action = np.zeros(3, dtype=np.float32)
+        dim = residual_obs_dim(self.include_base_action, self.history_len)
+        self.observation_space = spaces.Box(-np.inf, np.inf, (dim,), np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
+
+    @property
+    def config(self) -> dict[str, Any]:
+        """The wrapper's keyword arguments (to save with a model)."""
+        return {"controller": self.controller_name, "scale": self.scale,
+                "include_base_action": self.include_base_action, "history_len": self.history_len,
+                "history_stride": self.history_stride}
+
+    def _augment(self, obs: np.ndarray) -> np.ndarray:
+        self._base_action, _ = self.base.predict(obs, episode_start=np.array([self._k == 0]))
+        parts = [np.asarray(obs, dtype=np.float32)]
+        if self.include_base_action:
+            parts.append(self._base_action.astype(np.float32))
+        if self.history_len:
+            vel = np.asarray(obs[_TARGET_VEL], dtype=np.float64)
+            if self._k == 0:
+                self._buf[:] = vel
+            self._buf[self._k % self._buf_len] = vel
+            feats = []
+            for j in range(1, self.history_len + 1):
+                lag = j * self.history_stride
+                past = self._buf[(self._k - lag) % self._buf_len]
+                feats.append((vel - past) / (lag * self._dt))
+            parts.append(np.concatenate(feats).astype(np.float32))
+        return np.concatenate(parts)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        self._k = 0
+        out = self._augment(obs)
+        info["base_action"] = self._base_action
+        return out, info
+
+    def step(self, action: Any):
+        res = np.asarray(action, dtype=np.float64).reshape(3)
+        applied = np.clip(self._base_action.astype(np.float64) + self.scale * np.clip(res, -1.0, 1.0), -1.0, 1.0)
+        obs, reward, terminated, truncated, info = self.env.step(applied)
+        info["applied_action"] = applied
+        self._k += 1
+        out = self._augment(obs)
+        info["base_action"] = self._base_action
+        return out, reward, terminated, truncated, info
+
+
+def make_residual_wrapper(**kwargs: Any) -> Callable[[gym.Env], gym.Env]:
+    """A one-argument wrapper factory (for ``evaluate(env_wrapper=...)`` and SB3's
+    ``make_vec_env(wrapper_class=...)``), validated now rather than at first use."""
+    _check(kwargs.get("controller", DEFAULT_CONTROLLER), kwargs.get("scale", DEFAULT_SCALE),
+           kwargs.get("history_len", DEFAULT_HISTORY_LEN), kwargs.get("history_stride", DEFAULT_HISTORY_STRIDE))
+
+    def wrap(env: gym.Env) -> gym.Env:
+        return ResidualWrapper(env, **kwargs)
+
+    return wrap
