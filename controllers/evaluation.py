@@ -137,8 +137,12 @@ def evaluate(policy: Any, env_id: str = "AUVFollow-S4-v0", seeds: Iterable[int] 
 def evaluate_controllers(names: Sequence[str] | None = None,
                          scenarios: Sequence[str] = ("S1", "S2", "S3", "S4"),
                          seeds: Iterable[int] = (0,), *, env_kwargs: dict | None = None,
-                         trajectories: bool = False, progress: bool = True):
+                         trajectories: bool = False, progress: bool = True, batched: bool = True):
     """The paper's controllers on the paper's scenarios: one gain set, identical seeds.
+
+    With ``batched`` (default) each scenario runs all controllers and seeds in one native
+    vector env (:func:`evaluate_batched`); otherwise one single-env episode at a time
+    (:func:`evaluate`). Both give the same numbers.
 
     Returns the concatenated metrics DataFrame (and trajectories if requested).
     """
@@ -146,19 +150,25 @@ def evaluate_controllers(names: Sequence[str] | None = None,
 
     names = list(CONTROLLERS if names is None else names)
     seeds = _check_seeds(seeds)
-    jobs = [(sc, n) for sc in scenarios for n in names]
+    cfg_kwargs = {k: v for k, v in (env_kwargs or {}).items() if k not in _MAKE_ONLY_KWARGS}
     ms, ts = [], []
-    for sc, n in tqdm(jobs, desc="controllers x scenarios", disable=not progress):
-        env_id = f"AUVFollow-{sc}-v0"
-        spec = auv_follow_env.make_task_spec(sc, **{k: v for k, v in (env_kwargs or {}).items()
-                                                     if k not in _MAKE_ONLY_KWARGS})
-        out = evaluate(make_controller(n, spec), env_id, seeds, env_kwargs=env_kwargs,
-                       trajectories=trajectories, progress=False)
-        if trajectories:
-            ms.append(out[0])
-            ts.append(out[1])
-        else:
-            ms.append(out)
+    if batched:
+        for sc in tqdm(scenarios, desc="scenarios", disable=not progress):
+            spec = auv_follow_env.make_task_spec(sc, **cfg_kwargs)
+            out = evaluate_batched([make_controller(n, spec) for n in names], f"AUVFollow-{sc}-v0", seeds,
+                                   env_kwargs=env_kwargs, trajectories=trajectories, progress=progress)
+            ms.append(out[0] if trajectories else out)
+            if trajectories:
+                ts.append(out[1])
+    else:
+        jobs = [(sc, n) for sc in scenarios for n in names]
+        for sc, n in tqdm(jobs, desc="controllers x scenarios", disable=not progress):
+            spec = auv_follow_env.make_task_spec(sc, **cfg_kwargs)
+            out = evaluate(make_controller(n, spec), f"AUVFollow-{sc}-v0", seeds, env_kwargs=env_kwargs,
+                           trajectories=trajectories, progress=False)
+            ms.append(out[0] if trajectories else out)
+            if trajectories:
+                ts.append(out[1])
     metrics = pd.concat(ms, ignore_index=True)
     return (metrics, pd.concat(ts, ignore_index=True)) if trajectories else metrics
 
