@@ -242,8 +242,9 @@ def _vecnorm_for(model_path: Path) -> Path | None:
     return p if p.is_file() else None
 
 
-def train(cfg: TrainConfig) -> Path:
-    """Train one agent as ``cfg`` says and return its run directory.
+def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, Any]:
+    """Train one agent as ``cfg`` says and return its run directory (and the trained SB3
+    model if ``return_model``).
 
     Raises:
         ValueError: invalid configuration (the message names the field and the valid values).
@@ -331,7 +332,7 @@ def train(cfg: TrainConfig) -> Path:
                           "steps_per_s": round((model.num_timesteps - start_steps) / max(elapsed, 1e-9), 1)}
     _write_yaml(run / "config.yaml", resolved)
     venv.close()
-    return run
+    return (run, model) if return_model else run
 
 
 def _write_yaml(path: Path, data: dict) -> None:
