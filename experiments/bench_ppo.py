@@ -78,7 +78,8 @@ def main(argv: list[str] | None = None) -> dict:
               + ", ".join(f"{e} {us:.1f} us" for e, us in raw.items()), "",
               f"python {platform.python_version()}, torch {torch.__version__}, stable-baselines3 "
               f"{stable_baselines3.__version__}, gymnasium {gym.__version__}, numpy {np.__version__}, "
-              f"{platform.machine()}.", "", f"Reproduce: `python experiments/bench_ppo.py --timesteps {a.timesteps}`", ""]
+              f"{platform.machine()}.", "",
+              f"Reproduce: `python experiments/bench_ppo.py --timesteps {a.timesteps}`", ""]
     text = "\n".join(lines)
     print(text)
     out = Path(a.out)
