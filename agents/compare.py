@@ -167,11 +167,9 @@ def plot_learning_curves(runs: dict[str, str | Path], path: str | Path, baseline
             ax.axhline(value, ls="--", lw=1, color="gray")
             ax.annotate(name, (0.01, value), xycoords=("axes fraction", "data"), fontsize=8, va="bottom")
         ax.set_xlabel("environment steps")
-        ax.set_ylabel("episode return (-sum of distances, m)")
+        ax.set_ylabel("episode return (-sum of distances) [m], symlog")
+        ax.set_yscale("symlog", linthresh=10.0)
         ax.set_title(label)
-        lo = np.nanpercentile(mon["r"], 5) if len(mon) else None
-        if lo is not None and baseline:
-            ax.set_ylim(bottom=min(lo, min(baseline.values()) * 1.5))
         ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

@@ -31,7 +31,7 @@ from gymnasium import spaces
 from auv_follow_env.layout import OBS_DIM, obs_slice
 from controllers import CONTROLLERS, make_controller
 
-__all__ = ["ResidualWrapper", "residual_obs_dim", "make_residual_wrapper"]
+__all__ = ["ResidualWrapper", "ResidualPolicy", "DelayedTargetHistory", "residual_obs_dim", "make_residual_wrapper"]
 
 _TARGET_VEL = obs_slice("target_u", "target_r")
 
@@ -56,6 +56,44 @@ def _check(controller: str, scale: float, history_len: int, history_stride: int)
         raise ValueError(f"history_len={history_len!r} is invalid: must be an integer >= 0")
     if isinstance(history_stride, bool) or not isinstance(history_stride, (int, np.integer)) or history_stride < 1:
         raise ValueError(f"history_stride={history_stride!r} is invalid: must be an integer >= 1")
+
+
+class DelayedTargetHistory:
+    """Batched finite-difference accelerations of the delayed target (the history features).
+
+    For each env, keeps the last ``history_len * history_stride + 1`` samples of
+    (target_u, target_v, target_r) and returns, for j = 1..history_len,
+    ``(x_k - x_{k - j stride}) / (j stride dt)``; samples before an episode's start are its
+    first sample.
+    """
+
+    def __init__(self, history_len: int, history_stride: int, dt: float) -> None:
+        self.history_len, self.history_stride, self.dt = int(history_len), int(history_stride), float(dt)
+        self._len = self.history_len * self.history_stride + 1
+        self._buf: np.ndarray | None = None
+        self._k: np.ndarray | None = None
+
+    def __call__(self, obs: np.ndarray, start: np.ndarray) -> np.ndarray:
+        """Features (N, 3 history_len) for observations (N, OBS_DIM); ``start`` (N,) marks
+        the envs whose episode begins at this observation."""
+        n = obs.shape[0]
+        vel = np.asarray(obs[:, _TARGET_VEL], dtype=np.float64)
+        if self._buf is None or self._buf.shape[1] != n:
+            self._buf = np.zeros((self._len, n, 3))
+            self._k = np.zeros(n, dtype=np.int64)
+            start = np.ones(n, dtype=bool)
+        if np.any(start):
+            self._buf[:, start] = vel[start]
+            self._k[start] = 0
+        idx = np.arange(n)
+        self._buf[self._k % self._len, idx] = vel
+        feats = [(vel - self._buf[(self._k - j * self.history_stride) % self._len, idx]) / (j * self.history_stride
+                                                                                           * self.dt)
+                 for j in range(1, self.history_len + 1)]
+        self._k += 1
+        if not feats:
+            return np.zeros((n, 0), dtype=np.float32)
+        return np.concatenate(feats, axis=1).astype(np.float32)
 
 
 class ResidualWrapper(gym.Wrapper):
@@ -90,9 +128,7 @@ class ResidualWrapper(gym.Wrapper):
         self.include_base_action = bool(include_base_action)
         self.history_len = int(history_len)
         self.history_stride = int(history_stride)
-        self._dt = float(spec.dt)
-        self._buf_len = self.history_len * self.history_stride + 1
-        self._buf = np.zeros((self._buf_len, 3))
+        self._history = DelayedTargetHistory(self.history_len, self.history_stride, spec.dt)
         self._k = 0
         self._base_action = np.zeros(3, dtype=np.float32)
         dim = residual_obs_dim(self.include_base_action, self.history_len)
@@ -112,16 +148,7 @@ class ResidualWrapper(gym.Wrapper):
         if self.include_base_action:
             parts.append(self._base_action.astype(np.float32))
         if self.history_len:
-            vel = np.asarray(obs[_TARGET_VEL], dtype=np.float64)
-            if self._k == 0:
-                self._buf[:] = vel
-            self._buf[self._k % self._buf_len] = vel
-            feats = []
-            for j in range(1, self.history_len + 1):
-                lag = j * self.history_stride
-                past = self._buf[(self._k - lag) % self._buf_len]
-                feats.append((vel - past) / (lag * self._dt))
-            parts.append(np.concatenate(feats).astype(np.float32))
+            parts.append(self._history(np.asarray(obs)[None, :], np.array([self._k == 0]))[0])
         return np.concatenate(parts)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -152,3 +179,60 @@ def make_residual_wrapper(**kwargs: Any) -> Callable[[gym.Env], gym.Env]:
         return ResidualWrapper(env, **kwargs)
 
     return wrap
+
+
+class ResidualPolicy:
+    """A residual agent as one policy over *raw* AUVFollow observations (SB3 ``predict``
+    protocol, single (16,) or batched (N, 16)): it runs the base controller and the history
+    itself, so it needs no wrapper (e.g. for ``controllers.evaluation.evaluate`` or
+    ``evaluate_batched``). Per-env memory restarts where ``episode_start`` is True (and on
+    the first call / a change of batch size).
+
+    Args:
+        agent: the residual agent's policy over the wrapped observation (anything with
+            ``predict``, e.g. :class:`agents.train.Agent`).
+        spec: the task spec of the env it will run on.
+        residual: the wrapper settings the agent was trained with (``ResidualWrapper.config``).
+        name: label.
+    """
+
+    def __init__(self, agent: Any, spec: Any, residual: dict[str, Any], name: str | None = None) -> None:
+        cfg = {"controller": DEFAULT_CONTROLLER, "scale": DEFAULT_SCALE, "include_base_action": True,
+               "history_len": DEFAULT_HISTORY_LEN, "history_stride": DEFAULT_HISTORY_STRIDE, **residual}
+        _check(cfg["controller"], cfg["scale"], cfg["history_len"], cfg["history_stride"])
+        self.agent = agent
+        self.base = make_controller(cfg["controller"], spec)
+        self.scale = float(cfg["scale"])
+        self.include_base_action = bool(cfg["include_base_action"])
+        self.history = DelayedTargetHistory(cfg["history_len"], cfg["history_stride"], spec.dt)
+        self.name = name or getattr(agent, "name", "residual")
+        self._n: int | None = None
+
+    def reset(self) -> None:
+        """Forget all memory: the next call starts fresh for every env."""
+        self._n = None
+
+    def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
+                deterministic: bool = True) -> tuple[np.ndarray, Any]:
+        obs = np.asarray(observation)
+        single = obs.ndim == 1
+        if single:
+            obs = obs[None, :]
+        if obs.ndim != 2 or obs.shape[1] != OBS_DIM:
+            raise ValueError(f"observation has shape {np.shape(observation)}: expected ({OBS_DIM},) or (N, {OBS_DIM})")
+        n = obs.shape[0]
+        if self._n != n or episode_start is None:
+            start = np.full(n, self._n != n)
+        else:
+            start = np.asarray(episode_start, dtype=bool).reshape(n)
+        self._n = n
+        base, _ = self.base.predict(obs, episode_start=start)
+        parts = [obs.astype(np.float32)]
+        if self.include_base_action:
+            parts.append(base.astype(np.float32))
+        if self.history.history_len:
+            parts.append(self.history(obs, start))
+        res, _ = self.agent.predict(np.concatenate(parts, axis=1), deterministic=deterministic)
+        res = np.clip(np.asarray(res, dtype=np.float64).reshape(n, 3), -1.0, 1.0)
+        action = np.clip(base.astype(np.float64) + self.scale * res, -1.0, 1.0)
+        return (action[0] if single else action), state

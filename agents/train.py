@@ -363,6 +363,19 @@ class Agent:
         self.name = name or (f"{run['algo'].upper()}+{self.residual['controller']} (residual)"
                              if self.mode == "residual" else f"{run['algo'].upper()} (scratch)")
 
+    def raw_policy(self, env_id: str | None = None, env_kwargs: dict | None = None) -> Any:
+        """A policy over raw AUVFollow observations: for a residual agent an
+        :class:`agents.residual.ResidualPolicy` (runs its own base controller and history),
+        for a from-scratch agent ``self``."""
+        if self.mode != "residual":
+            return self
+        from agents.residual import ResidualPolicy
+
+        env = gym.make(env_id or self.env_id, **(self.env_kwargs if env_kwargs is None else env_kwargs))
+        spec = env.unwrapped.task_spec
+        env.close()
+        return ResidualPolicy(self, spec, self.residual, name=self.name)
+
     def normalize(self, obs: np.ndarray) -> np.ndarray:
         if self._obs_rms is None:
             return obs

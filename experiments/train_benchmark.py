@@ -106,6 +106,8 @@ def report(args: Args) -> None:
         goal = "met" if chg <= -30.0 else "NOT met"
         lines += [f"Goal (>= 30 % lower steady-state mean true error than PROPOSED): **{goal}** ({chg:+.1f} %).",
                   ""]
+    if "residual" in runs:
+        lines += _transfer(args, load_agent(runs["residual"]))
     lines += ["## Training runs", "", "| run | algo | mode | seed | steps | wall clock (s) | steps/s |",
               "|---|---|---|---|---|---|---|"]
     for k, r in runs.items():
@@ -129,6 +131,27 @@ def report(args: Args) -> None:
               "![benchmark](benchmark.png)", "", "![learning curves](learning_curves.png)", ""]
     (out / "benchmark.md").write_text("\n".join(lines))
     print("\n".join(lines[:len(summary) + 6]))
+
+
+#: out-of-distribution checks of the S4-trained residual agent: (label, env id, overrides)
+TRANSFER_CASES = (("S4, delay 1.0 s", "AUVFollow-S4-v0", {"delay_s": 1.0}),
+                  ("S4, disturbance L1", "AUVFollow-S4-v0", {"disturbance": "L1"}),
+                  ("S3 (tau 1.5 s, other manoeuvre periods)", "AUVFollow-S3-v0", {}))
+
+
+def _transfer(args: Args, agent) -> list[str]:
+    """The residual agent outside its training scenario, against PROPOSED (same seeds)."""
+    seeds = args.test_seeds[:5]
+    lines = ["## Outside the training scenario", "",
+             f"The residual agent trained on {args.env_id}, evaluated unchanged elsewhere (test seeds {seeds}); "
+             "steady-state mean error to the true reference [m].", "",
+             "| case | PROPOSED | residual agent | change (%) |", "|---|---|---|---|"]
+    for label, env_id, kw in TRANSFER_CASES:
+        _, s = compare([agent], env_id, seeds, controllers=["PROPOSED"], env_kwargs=kw or None,
+                       progress=False)
+        p, r = s.loc["PROPOSED", "true_steady_mean"], s.loc[agent.name, "true_steady_mean"]
+        lines.append(f"| {label} | {p:.4f} | {r:.4f} | {100 * (r / p - 1):+.1f} |")
+    return lines + [""]
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -120,6 +120,18 @@ def test_train_save_load_same_actions(tmp_path, algo, mode):
     np.testing.assert_allclose(single, expected[0], rtol=1e-5, atol=1e-6)  # batch-1 BLAS rounding
 
 
+def test_residual_policy_on_raw_env_matches_wrapper(tmp_path):
+    from controllers.evaluation import evaluate
+
+    agent = load_agent(train(_tiny_ppo(tmp_path, total_timesteps=512, hyperparams={"n_steps": 256})))
+    wrapped = evaluate(agent, ENV, [1000, 1001], env_wrapper=agent.env_wrapper, progress=False)
+    raw = evaluate(agent.raw_policy(), ENV, [1000, 1001], progress=False)
+    cols = ["return", "true_steady_mean", "true_full_rmse", "true_full_max"]
+    np.testing.assert_array_equal(raw[cols].to_numpy(), wrapped[cols].to_numpy())
+    obs = np.zeros((3, 16), dtype=np.float32)
+    assert agent.raw_policy().predict(obs, episode_start=np.ones(3, bool))[0].shape == (3, 3)
+
+
 def test_resume_continues_step_count(tmp_path):
     run = train(_tiny_ppo(tmp_path, total_timesteps=1024, checkpoint_freq=512, run_name="first"))
     ckpt = run / "checkpoints" / "model_512_steps.zip"
