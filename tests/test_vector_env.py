@@ -298,3 +298,12 @@ def test_gymnasium_vector_wrappers_read_the_infos():
     for a in _actions(40, n):
         *_, infos = listed.step(a)
     assert len(infos) == n and all(set(METRIC_KEYS) <= set(d["episode_metrics"]) for d in infos)
+
+
+def test_bench_script_smoke(tmp_path):
+    from experiments.bench_vector import main
+
+    out = tmp_path / "bench.md"
+    text = main(["--budget", "0.01", "--sizes", "1", "3", "--no-parallel", "--out", str(out)])
+    assert out.read_text() == text
+    assert "| 3 |" in text and "native / SyncVectorEnv" in text
