@@ -170,7 +170,8 @@ def plot_learning_curves(runs: dict[str, str | Path], path: str | Path, baseline
         ax.set_ylabel("episode return (-sum of distances) [m], symlog")
         ax.set_yscale("symlog", linthresh=10.0)
         ax.set_title(label)
-        ax.legend(fontsize=8)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -3,8 +3,8 @@
 Same PPO settings for both envs (SB3 defaults, rollout of 2048 samples: n_steps = 2048 //
 n_envs), DummyVecEnv with 8 envs and with 1 env, ``--timesteps`` each, torch on one thread,
 same process. Throughput = timesteps / wall clock of ``model.learn`` (collection and
-updates). Goal: AUVFollow >= 0.9 x Pendulum. Also reports raw env stepping (random actions
-through ``gym.make``) for context. Writes ``results/bench_ppo.md``.
+updates), median of ``--repeats`` interleaved runs. Goal: AUVFollow >= 0.9 x Pendulum.
+Also reports raw env stepping (random actions through ``gym.make``) for context. Writes ``results/bench_ppo.md``.
 
     python experiments/bench_ppo.py --timesteps 20000
 """
@@ -59,19 +59,27 @@ def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--timesteps", type=int, default=20_000, help="PPO timesteps per (env, n_envs) run")
     p.add_argument("--n-envs", type=int, nargs="+", default=[8, 1])
+    p.add_argument("--repeats", type=int, default=3, help="interleaved repetitions; the median is reported")
     p.add_argument("--out", default="results/bench_ppo.md")
     a = p.parse_args(argv)
     if a.timesteps <= 0:
         p.error(f"--timesteps={a.timesteps} is invalid: must be positive")
+    if a.repeats <= 0:
+        p.error(f"--repeats={a.repeats} is invalid: must be positive")
     torch.set_num_threads(1)
     rows = []
     for n in a.n_envs:
-        fps = {e: ppo_throughput(e, n, a.timesteps) for e in ENVS}
+        runs = {e: [] for e in ENVS}
+        for _ in range(a.repeats):  # interleaved, so drifts in machine load hit both envs alike
+            for e in ENVS:
+                runs[e].append(ppo_throughput(e, n, a.timesteps))
+        fps = {e: float(np.median(v)) for e, v in runs.items()}
         rows.append((n, fps[ENVS[0]], fps[ENVS[1]], fps[ENVS[0]] / fps[ENVS[1]]))
     raw = {e: env_step_us(e) for e in ENVS}
     lines = ["# PPO training throughput: AUVFollow-S4-v0 vs Pendulum-v1", "",
              f"SB3 PPO (MlpPolicy, rollout 2048 samples, batch 64, 10 epochs), DummyVecEnv, {a.timesteps} "
-             "timesteps per run, torch 1 thread, same process. Goal: ratio >= 0.9.", "",
+             f"timesteps per run, median of {a.repeats} interleaved runs, torch 1 thread, same process. "
+             "Goal: ratio >= 0.9.", "",
              "| n_envs | AUVFollow-S4-v0 (steps/s) | Pendulum-v1 (steps/s) | ratio |", "|---|---|---|---|"]
     lines += [f"| {n} | {x:.0f} | {y:.0f} | {r:.2f} |" for n, x, y, r in rows]
     lines += ["", "Raw `env.step` through `gym.make` (random actions): "

@@ -207,3 +207,23 @@ def test_library_errors(tmp_path):
         load_agent(tmp_path / "missing.zip")
     with pytest.raises(FileNotFoundError, match="resume_from"):
         TrainConfig(resume_from=str(tmp_path / "missing.zip")).validate()
+
+
+# --- scripts ------------------------------------------------------------------------------------
+
+def test_train_benchmark_script_tiny(tmp_path):
+    from experiments import train_benchmark
+
+    train_benchmark.main(["--stage", "all", "--minutes", "0.01", "--max-timesteps", "4096", "--test-seeds", "1000",
+                          "--out", str(tmp_path), "--no-progress"])
+    for f in ("benchmark.md", "benchmark.csv", "benchmark.png", "learning_curves.png"):
+        assert (tmp_path / f).is_file()
+    text = (tmp_path / "benchmark.md").read_text()
+    assert "PROPOSED" in text and "(residual)" in text and "(scratch)" in text
+
+
+def test_bench_ppo_script_tiny(tmp_path):
+    from experiments import bench_ppo
+
+    out = bench_ppo.main(["--timesteps", "256", "--n-envs", "1", "--repeats", "1", "--out", str(tmp_path / "b.md")])
+    assert (tmp_path / "b.md").is_file() and out["rows"][0][1] > 0
