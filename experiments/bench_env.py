@@ -122,7 +122,8 @@ def main(argv: list[str] | None = None) -> str:
         f"Python {platform.python_version()}, numpy {np.__version__}, gymnasium {gym.__version__}, "
         f"numba {__import__('numba').__version__}, {platform.machine()}, {os.cpu_count()} CPUs.",
         "",
-        "Through `gym.make` (TimeLimit, OrderEnforcing, PassiveEnvChecker), pre-sampled random",
+        "Through `gym.make` (Pendulum-v1: TimeLimit, OrderEnforcing, PassiveEnvChecker; AUVFollow: "
+        "OrderEnforcing, PassiveEnvChecker - it truncates itself at episode_s), pre-sampled random",
         f"actions, {args.steps:,} steps per measurement, {args.repeats} repeats interleaved; resets at",
         "episode ends are included in the time (random thrust drives the AUV follower more than",
         "20 m from the reference, so many of its episodes end by termination before 1200 steps).",
