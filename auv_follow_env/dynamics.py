@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
 
 # --- parameter columns (per env) ---------------------------------------------------------
@@ -97,10 +98,33 @@ def forcing(p, i, t):
 
 
 @njit(cache=True, inline="always")
-def follower_rhs(p, i, f, psi, u, v, r, fu, fv, fr):
-    """Right-hand side of eqs. (3)-(9) for the follower, given the forcing tuple f."""
-    c = math.cos(psi)
-    s = math.sin(psi)
+def cos_sin_small(d):
+    """(cos d, sin d): Taylor polynomials (exact to double precision for |d| <= 0.25), libm beyond.
+
+    Used for the small angle increments inside one RK4 step (stage headings, tone phasors),
+    where it replaces libm calls that dominate the kernel's cost.
+    """
+    if abs(d) > 0.25:
+        return math.cos(d), math.sin(d)
+    d2 = d * d
+    c = 1.0 - d2 / 2.0 * (1.0 - d2 / 12.0 * (1.0 - d2 / 30.0 * (1.0 - d2 / 56.0 * (
+        1.0 - d2 / 90.0 * (1.0 - d2 / 132.0)))))
+    s = d * (1.0 - d2 / 6.0 * (1.0 - d2 / 20.0 * (1.0 - d2 / 42.0 * (1.0 - d2 / 72.0 * (
+        1.0 - d2 / 110.0 * (1.0 - d2 / 156.0))))))
+    return c, s
+
+
+@njit(cache=True, inline="always")
+def _turn(c0, s0, d):
+    """(cos, sin) of (angle + d) from (cos, sin) of the angle."""
+    cd, sd = cos_sin_small(d)
+    return c0 * cd - s0 * sd, s0 * cd + c0 * sd
+
+
+@njit(cache=True, inline="always")
+def follower_rhs(p, i, f, c, s, u, v, r, fu, fv, fr):
+    """Right-hand side of eqs. (3)-(9) for the follower at heading (cos, sin) = (c, s),
+    given the forcing tuple f = (v_cx, v_cy, d_u, d_v, d_r, u_t, r_t)."""
     ur = u - (c * f[0] + s * f[1])  # eq. (9) with eq. (5)
     vr = v - (-s * f[0] + c * f[1])
     m = p[i, P_M]
@@ -110,53 +134,88 @@ def follower_rhs(p, i, f, psi, u, v, r, fu, fv, fr):
             (fr - p[i, P_NR] * r + f[4]) / p[i, P_IZ])
 
 
-@njit(cache=True, inline="always")
-def target_rhs(f, psit):
-    """Right-hand side of eq. (10) with v_t = 0."""
-    return f[5] * math.cos(psit), f[5] * math.sin(psit), f[6]
-
-
 @njit(cache=True)
 def rk4_substep(state, i, p, h, fu, fv, fr, f0, fm, f1):
-    """One RK4 step of length h for follower and target of env i (in place).
+    """One classical RK4 step of length h for follower and target of env i (in place).
 
-    f0, fm, f1: the forcing at the step's start, midpoint and end (the stage times).
+    f0, fm, f1: the forcing at the step's start, midpoint and end (the stage times). The
+    stage headings psi + dpsi use cos/sin of psi and of the small increment dpsi.
     """
     x, y, ps, u, v, r = state[i, 0], state[i, 1], state[i, 2], state[i, 3], state[i, 4], state[i, 5]
     hh = 0.5 * h
-    a0, a1, a2, a3, a4, a5 = follower_rhs(p, i, f0, ps, u, v, r, fu, fv, fr)
-    b0, b1, b2, b3, b4, b5 = follower_rhs(p, i, fm, ps + hh * a2, u + hh * a3, v + hh * a4,
-                                          r + hh * a5, fu, fv, fr)
-    c0, c1, c2, c3, c4, c5 = follower_rhs(p, i, fm, ps + hh * b2, u + hh * b3, v + hh * b4,
-                                          r + hh * b5, fu, fv, fr)
-    d0, d1, d2, d3, d4, d5 = follower_rhs(p, i, f1, ps + h * c2, u + h * c3, v + h * c4,
-                                          r + h * c5, fu, fv, fr)
+    c0 = math.cos(ps)
+    s0 = math.sin(ps)
+    a0, a1, a2, a3, a4, a5 = follower_rhs(p, i, f0, c0, s0, u, v, r, fu, fv, fr)
+    c, s = _turn(c0, s0, hh * a2)
+    b0, b1, b2, b3, b4, b5 = follower_rhs(p, i, fm, c, s, u + hh * a3, v + hh * a4, r + hh * a5, fu, fv, fr)
+    c, s = _turn(c0, s0, hh * b2)
+    c0_, c1, c2, c3, c4, c5 = follower_rhs(p, i, fm, c, s, u + hh * b3, v + hh * b4, r + hh * b5, fu, fv, fr)
+    c, s = _turn(c0, s0, h * c2)
+    d0, d1, d2, d3, d4, d5 = follower_rhs(p, i, f1, c, s, u + h * c3, v + h * c4, r + h * c5, fu, fv, fr)
     w = h / 6.0
-    state[i, 0] = x + w * (a0 + 2.0 * (b0 + c0) + d0)
+    state[i, 0] = x + w * (a0 + 2.0 * (b0 + c0_) + d0)
     state[i, 1] = y + w * (a1 + 2.0 * (b1 + c1) + d1)
     state[i, 2] = ps + w * (a2 + 2.0 * (b2 + c2) + d2)
     state[i, 3] = u + w * (a3 + 2.0 * (b3 + c3) + d3)
     state[i, 4] = v + w * (a4 + 2.0 * (b4 + c4) + d4)
     state[i, 5] = r + w * (a5 + 2.0 * (b5 + c5) + d5)
+    # target, eq. (10) with v_t = 0: x' = u_t cos, y' = u_t sin, psi' = r_t
     pt = state[i, 8]
-    a0, a1, a2 = target_rhs(f0, pt)
-    b0, b1, b2 = target_rhs(fm, pt + hh * a2)
-    c0, c1, c2 = target_rhs(fm, pt + hh * b2)
-    d0, d1, d2 = target_rhs(f1, pt + h * c2)
-    state[i, 6] += w * (a0 + 2.0 * (b0 + c0) + d0)
-    state[i, 7] += w * (a1 + 2.0 * (b1 + c1) + d1)
-    state[i, 8] = pt + w * (a2 + 2.0 * (b2 + c2) + d2)
+    c0 = math.cos(pt)
+    s0 = math.sin(pt)
+    cb, sb = _turn(c0, s0, hh * f0[6])
+    cc, sc = _turn(c0, s0, hh * fm[6])
+    cd, sd = _turn(c0, s0, h * fm[6])
+    state[i, 6] += w * (f0[5] * c0 + 2.0 * fm[5] * (cb + cc) + f1[5] * cd)
+    state[i, 7] += w * (f0[5] * s0 + 2.0 * fm[5] * (sb + sc) + f1[5] * sd)
+    state[i, 8] = pt + w * (f0[6] + 4.0 * fm[6] + f1[6])
+
+
+#: the ten tones of the forcing: (omega column or -1 for DIST_OMEGA[k], phase column)
+_TONE_OMEGA = np.array([P_TWU, P_TWR, P_CX + 2, P_CY + 2, -1, -2, -1, -2, -1, -2], dtype=np.int64)
+_TONE_PHASE = np.array([P_TPU, P_TPR, P_CX + 3, P_CY + 3, P_D + 1, P_D + 3, P_D + 5, P_D + 7, P_D + 9,
+                        P_D + 11], dtype=np.int64)
+
+
+@njit(cache=True, inline="always")
+def _forcing_from(p, i, S):
+    """Forcing tuple from the ten tone sines S (same values as :func:`forcing`)."""
+    return (p[i, P_CX] + p[i, P_CX + 1] * S[2], p[i, P_CY] + p[i, P_CY + 1] * S[3],
+            p[i, P_D] * S[4] + p[i, P_D + 2] * S[5], p[i, P_D + 4] * S[6] + p[i, P_D + 6] * S[7],
+            p[i, P_D + 8] * S[8] + p[i, P_D + 10] * S[9],
+            p[i, P_TV] * (1.0 + p[i, P_TAU] * S[0]), p[i, P_TAR] * S[1])
 
 
 @njit(cache=True)
-def advance(state, i, p, t0, dt, nsub, fu, fv, fr):
-    """Advance env i by dt from time t0 in nsub RK4 substeps, force held constant."""
+def advance(state, i, p, t0, dt, nsub, fu, fv, fr, scratch):
+    """Advance env i by dt from time t0 in nsub RK4 substeps, force held constant.
+
+    The ten time-dependent tones are evaluated once at t0 and then rotated by half substeps
+    (angle addition with small-angle cos/sin), so each stage time is exact to rounding.
+    ``scratch`` is a (4, 10) float64 work array.
+    """
     h = dt / nsub
-    f0 = forcing(p, i, t0)
-    for j in range(nsub):
-        t = t0 + j * h
-        fm = forcing(p, i, t + 0.5 * h)
-        f1 = forcing(p, i, t + h)
+    hh = 0.5 * h
+    S, C, RC, RS = scratch[0], scratch[1], scratch[2], scratch[3]
+    for j in range(10):
+        oc = _TONE_OMEGA[j]
+        w = p[i, oc] if oc >= 0 else (_W1 if oc == -1 else _W2)
+        a = w * t0 + p[i, _TONE_PHASE[j]]
+        S[j] = math.sin(a)
+        C[j] = math.cos(a)
+        RC[j], RS[j] = cos_sin_small(w * hh)
+    f0 = _forcing_from(p, i, S)
+    for _ in range(nsub):
+        for j in range(10):
+            s, c = S[j], C[j]
+            S[j] = s * RC[j] + c * RS[j]
+            C[j] = c * RC[j] - s * RS[j]
+        fm = _forcing_from(p, i, S)
+        for j in range(10):
+            s, c = S[j], C[j]
+            S[j] = s * RC[j] + c * RS[j]
+            C[j] = c * RC[j] - s * RS[j]
+        f1 = _forcing_from(p, i, S)
         rk4_substep(state, i, p, h, fu, fv, fr, f0, fm, f1)
         f0 = f1
 
@@ -169,8 +228,9 @@ def integrate(state, p, cfg, t0, forces):
     reward: what the speed benchmark compares the env against.
     """
     nsub = int(cfg[C_NSUB])
+    scratch = np.empty((4, 10))
     for i in range(state.shape[0]):
-        advance(state, i, p, t0[i], cfg[C_DT], nsub, forces[i, 0], forces[i, 1], forces[i, 2])
+        advance(state, i, p, t0[i], cfg[C_DT], nsub, forces[i, 0], forces[i, 1], forces[i, 2], scratch)
 
 
 @njit(cache=True)
@@ -261,6 +321,7 @@ def reset_kernel(state, k, buf, p, cfg, idx, obs, truth):
     D = int(cfg[C_D])
     dt = cfg[C_DT]
     nsub = int(cfg[C_NSUB])
+    scratch = np.empty((4, 10))
     for n in range(idx.shape[0]):
         i = idx[n]
         for c in range(6):
@@ -270,7 +331,7 @@ def reset_kernel(state, k, buf, p, cfg, idx, obs, truth):
         state[i, 8] = 0.0
         _store_target(state, buf, p, cfg, i, -D)
         for step in range(-D, 0):
-            advance(state, i, p, step * dt, dt, nsub, 0.0, 0.0, 0.0)  # follower rewritten below
+            advance(state, i, p, step * dt, dt, nsub, 0.0, 0.0, 0.0, scratch)  # follower rewritten below
             _store_target(state, buf, p, cfg, i, step + 1)
         L = int(cfg[C_L])
         slot = (-D) % L
@@ -305,6 +366,7 @@ def step_kernel(state, k, buf, p, cfg, obs, truth, err_hist, rew, term, action):
     dt = cfg[C_DT]
     nsub = int(cfg[C_NSUB])
     maxd = cfg[C_MAXD]
+    scratch = np.empty((4, 10))
     nsteps = int(cfg[C_NSTEPS])
     effort = cfg[C_EFFORT]
     for i in range(n):
@@ -314,7 +376,7 @@ def step_kernel(state, k, buf, p, cfg, obs, truth, err_hist, rew, term, action):
         fu = a0 * cfg[C_FU]
         fv = a1 * cfg[C_FV]
         fr = a2 * cfg[C_FR]
-        advance(state, i, p, k[i] * dt, dt, nsub, fu, fv, fr)
+        advance(state, i, p, k[i] * dt, dt, nsub, fu, fv, fr, scratch)
         k[i] += 1
         _store_target(state, buf, p, cfg, i, k[i])
         err = _observe(state, k, buf, p, cfg, i, obs, truth)
