@@ -95,6 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--max-minutes", type=_positive_float, default=None, help="wall-clock budget [min]")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--n-envs", type=_positive_int, default=None)
+    t.add_argument("--vec", choices=("dummy", "native"), default="dummy",
+                   help="training VecEnv: SB3 DummyVecEnv of single envs, or the native batched env "
+                        "(one kernel call for all envs; scratch mode only)")
     t.add_argument("--out", dest="out_dir", default="runs", help="parent directory of the run directory")
     t.add_argument("--run-name", default=None)
     t.add_argument("--checkpoint-freq", type=int, default=100_000, help="env steps between checkpoints (0: none)")

@@ -45,6 +45,7 @@ __all__ = ["ALGOS", "MODES", "TrainConfig", "train", "load_hyperparams", "load_a
 
 ALGOS: tuple[str, ...] = ("ppo", "sac", "td3")
 MODES: tuple[str, ...] = ("residual", "scratch")
+VEC_KINDS = ("dummy", "native")
 HYPERPARAMS_DIR = Path(__file__).with_name("hyperparams")
 _ZOO_KEYS = ("n_timesteps", "policy", "n_envs", "normalize", "policy_kwargs", "noise_type", "noise_std")
 
@@ -131,6 +132,7 @@ class TrainConfig:
     max_minutes: float | None = None  #: wall-clock budget; training stops when it runs out
     seed: int = 0  #: seeds the model and the training envs (env i: seed + i)
     n_envs: int | None = None  #: parallel training envs (None: the YAML's)
+    vec: str = "dummy"  #: training VecEnv: "dummy" (SB3 DummyVecEnv) or "native" (batched AUVFollowVectorEnv)
     out_dir: str = "runs"  #: parent of the run directory
     run_name: str | None = None  #: run directory name (None: <algo>-<env>-<mode>-seed<k>-<timestamp>)
     checkpoint_freq: int = 100_000  #: env steps between checkpoints (0: none)
@@ -150,6 +152,11 @@ class TrainConfig:
         check_env_id(self.env_id, allow_any=self.mode == "scratch")
         if self.mode not in MODES:
             raise ValueError(f"mode={self.mode!r} is unknown: valid modes are {list(MODES)}")
+        if self.vec not in VEC_KINDS:
+            raise ValueError(f"vec={self.vec!r} is unknown: valid kinds are {list(VEC_KINDS)}")
+        if self.vec == "native" and self.mode != "scratch":
+            raise ValueError("vec='native' trains from scratch only (mode='scratch'): the residual wrapper is a "
+                             "per-env gymnasium wrapper; use vec='dummy' for residual agents")
         if self.mode == "residual":
             make_residual_wrapper(**self.residual_kwargs())
         for name in ("total_timesteps", "n_envs"):
@@ -176,9 +183,13 @@ def _wrapper(mode: str, residual: dict[str, Any] | None):
 
 
 def _make_venv(env_id: str, env_kwargs: dict, n_envs: int, seed: int, mode: str, residual: dict | None,
-               monitor_dir: str | None):
+               monitor_dir: str | None, vec: str = "dummy"):
     from stable_baselines3.common.env_util import make_vec_env
 
+    if vec == "native":
+        from agents.vec_adapter import NativeVecEnv
+
+        return NativeVecEnv(env_id, n_envs, seed=seed, env_kwargs=env_kwargs)
     return make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs or None,
                         wrapper_class=_wrapper(mode, residual), monitor_dir=monitor_dir)
 
@@ -270,7 +281,8 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
     (run / "monitor").mkdir(parents=True, exist_ok=True)
 
     set_random_seed(cfg.seed)
-    venv = _make_venv(cfg.env_id, cfg.env_kwargs, n_envs, cfg.seed, cfg.mode, residual, str(run / "monitor"))
+    venv = _make_venv(cfg.env_id, cfg.env_kwargs, n_envs, cfg.seed, cfg.mode, residual, str(run / "monitor"),
+                      cfg.vec)
     algo_kwargs = {k: v for k, v in hp.items() if k not in _ZOO_KEYS}
     gamma = float(algo_kwargs.get("gamma", 0.99))
     norm_kw = _normalize_kwargs(_eval_zoo(hp.get("normalize", False)), gamma)

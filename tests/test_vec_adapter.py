@@ -58,3 +58,16 @@ def test_bad_arguments():
         NativeVecEnv("CartPole-v1", 2)
     with pytest.raises(ValueError, match="num_envs"):
         NativeVecEnv("AUVFollow-S1-v0", 0)
+
+
+def test_cli_trains_on_the_native_vector_env(tmp_path, capsys):
+    from agents.cli import main
+
+    main(["train", "--algo", "ppo", "--mode", "scratch", "--vec", "native", "--env", "AUVFollow-S1-v0",
+          "--timesteps", "512", "--n-envs", "4", "--hp", "n_steps=64", "--hp", "batch_size=64",
+          "--checkpoint-freq", "0", "--eval-freq", "0", "--out", str(tmp_path), "--run-name", "nat",
+          "--no-progress", "--no-tensorboard"])
+    assert (tmp_path / "nat" / "model.zip").is_file()
+    with pytest.raises(SystemExit):
+        main(["train", "--mode", "residual", "--vec", "native", "--timesteps", "64", "--out", str(tmp_path)])
+    assert "vec='native' trains from scratch only" in capsys.readouterr().err
