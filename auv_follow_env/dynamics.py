@@ -77,27 +77,6 @@ def current_inertial(p, i, t):
 
 
 @njit(cache=True, inline="always")
-def _tone(p, i, col, t):
-    return (p[i, col] * math.sin(_W1 * t + p[i, col + 1])
-            + p[i, col + 2] * math.sin(_W2 * t + p[i, col + 3]))
-
-
-@njit(cache=True, inline="always")
-def disturbance(p, i, t):
-    """Lumped disturbances (d_u [N], d_v [N], d_r [N m]) at time t."""
-    return _tone(p, i, P_D, t), _tone(p, i, P_D + 4, t), _tone(p, i, P_D + 8, t)
-
-
-@njit(cache=True, inline="always")
-def forcing(p, i, t):
-    """Everything time-dependent at time t: (v_cx, v_cy, d_u, d_v, d_r, u_t, r_t)."""
-    cx, cy = current_inertial(p, i, t)
-    du, dv, dr = disturbance(p, i, t)
-    ut, rt = target_velocity(p, i, t)
-    return cx, cy, du, dv, dr, ut, rt
-
-
-@njit(cache=True, inline="always")
 def cos_sin_small(d):
     """(cos d, sin d): Taylor polynomials (exact to double precision for |d| <= 0.25), libm beyond.
 
@@ -179,7 +158,7 @@ _TONE_PHASE = np.array([P_TPU, P_TPR, P_CX + 3, P_CY + 3, P_D + 1, P_D + 3, P_D 
 
 @njit(cache=True, inline="always")
 def _forcing_from(p, i, S):
-    """Forcing tuple from the ten tone sines S (same values as :func:`forcing`)."""
+    """Forcing tuple (v_cx, v_cy, d_u [N], d_v [N], d_r [N m], u_t, r_t) from the ten tone sines S."""
     return (p[i, P_CX] + p[i, P_CX + 1] * S[2], p[i, P_CY] + p[i, P_CY + 1] * S[3],
             p[i, P_D] * S[4] + p[i, P_D + 2] * S[5], p[i, P_D + 4] * S[6] + p[i, P_D + 6] * S[7],
             p[i, P_D + 8] * S[8] + p[i, P_D + 10] * S[9],
