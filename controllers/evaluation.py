@@ -49,6 +49,38 @@ def _check_seeds(seeds: Iterable[int]) -> list[int]:
     return out
 
 
+def _episode_outputs(spec: TaskSpec, name: str, seed: int, terminated: bool, ret: float, err: np.ndarray,
+                     own: np.ndarray, pose: np.ndarray | None = None, target: np.ndarray | None = None,
+                     ref: np.ndarray | None = None, force: np.ndarray | None = None):
+    """One episode's metrics row and (if ``pose`` is given) its trajectory frame.
+
+    ``err`` (n,) true-reference errors; ``own`` (n, 3) own reference in the follower body frame;
+    ``pose`` (n, 3), ``target`` (n, 3), ``ref`` (n, 2), ``force`` (n, 3) per step.
+    """
+    n = len(err)
+    times = spec.dt * np.arange(1, n + 1)
+    err_own = np.hypot(own[:, 0], own[:, 1])
+    m_true = tracking_metrics(err, times, spec.steady_start_s)
+    m_own = tracking_metrics(err_own, times, spec.steady_start_s)
+    row = {"scenario": spec.scenario, "disturbance": spec.disturbance, "policy": name, "seed": seed,
+           "steps": n, "terminated": bool(terminated), "return": float(ret),
+           **{f"true_{k}": v for k, v in m_true.items()}, **{f"own_{k}": v for k, v in m_own.items()}}
+    if pose is None:
+        return row, None
+    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+    frame = pd.DataFrame({
+        "scenario": spec.scenario, "disturbance": spec.disturbance, "policy": name,
+        "seed": seed, "step": np.arange(1, n + 1), "time": times,
+        "follower_x": pose[:, 0], "follower_y": pose[:, 1], "follower_psi": pose[:, 2],
+        "target_x": target[:, 0], "target_y": target[:, 1], "target_psi": target[:, 2],
+        "true_ref_x": ref[:, 0], "true_ref_y": ref[:, 1],
+        "own_ref_x": pose[:, 0] + c * own[:, 0] - s * own[:, 1],
+        "own_ref_y": pose[:, 1] + s * own[:, 0] + c * own[:, 1],
+        "err_true": err, "err_own": err_own,
+        "F_u": force[:, 0], "F_v": force[:, 1], "F_r": force[:, 2]})
+    return row, frame
+
+
 def evaluate(policy: Any, env_id: str = "AUVFollow-S4-v0", seeds: Iterable[int] = (0,), *,
              env_kwargs: dict | None = None, env_wrapper: Callable[[gym.Env], gym.Env] | None = None,
              policy_name: str | None = None, trajectories: bool = False, progress: bool = True,
@@ -100,33 +132,13 @@ def evaluate(policy: Any, env_id: str = "AUVFollow-S4-v0", seeds: Iterable[int] 
             rec["own"].append(policy.reference(obs)[0] if has_ref else np.full(3, np.nan))
             if terminated or truncated:
                 break
-        n = len(rec["err"])
-        times = spec.dt * np.arange(1, n + 1)
-        err = np.asarray(rec["err"])
-        pose = np.asarray(rec["pose"])
-        own = np.asarray(rec["own"])
-        c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
-        own_xy = pose[:, :2] + np.stack([c * own[:, 0] - s * own[:, 1], s * own[:, 0] + c * own[:, 1]], -1)
-        err_own = np.hypot(own[:, 0], own[:, 1])
-        m_true = tracking_metrics(err, times, spec.steady_start_s)
-        m_own = tracking_metrics(err_own, times, spec.steady_start_s)
-        rows.append({"scenario": spec.scenario, "disturbance": spec.disturbance, "policy": name,
-                     "seed": seed, "steps": n, "terminated": bool(terminated), "return": ret,
-                     **{f"true_{k}": v for k, v in m_true.items()},
-                     **{f"own_{k}": v for k, v in m_own.items()}})
+        arr = {k: np.asarray(v) for k, v in rec.items()}
+        row, frame = _episode_outputs(spec, name, seed, terminated, ret, arr["err"], arr["own"],
+                                      *((arr["pose"], arr["target"], arr["ref"], arr["force"]) if trajectories
+                                        else ()))
+        rows.append(row)
         if trajectories:
-            target = np.asarray(rec["target"])
-            ref = np.asarray(rec["ref"])
-            force = np.asarray(rec["force"])
-            trajs.append(pd.DataFrame({
-                "scenario": spec.scenario, "disturbance": spec.disturbance, "policy": name,
-                "seed": seed, "step": np.arange(1, n + 1), "time": times,
-                "follower_x": pose[:, 0], "follower_y": pose[:, 1], "follower_psi": pose[:, 2],
-                "target_x": target[:, 0], "target_y": target[:, 1], "target_psi": target[:, 2],
-                "true_ref_x": ref[:, 0], "true_ref_y": ref[:, 1],
-                "own_ref_x": own_xy[:, 0], "own_ref_y": own_xy[:, 1],
-                "err_true": err, "err_own": err_own,
-                "F_u": force[:, 0], "F_v": force[:, 1], "F_r": force[:, 2]}))
+            trajs.append(frame)
     env.close()
     metrics = pd.DataFrame(rows)
     if trajectories:
@@ -235,30 +247,16 @@ def evaluate_batched(policies: Sequence[Any], env_id: str = "AUVFollow-S4-v0", s
         if not alive.any():
             break
     venv.close()
-    times = spec.dt * np.arange(1, T + 1)
     rows, trajs = [], []
     for p in range(P):
         for j, seed in enumerate(seeds):
             i = p * S + j
             L = int(length[i])
-            e_own = np.hypot(own[:L, i, 0], own[:L, i, 1])
-            m_true = tracking_metrics(err[:L, i], times[:L], spec.steady_start_s)
-            m_own = tracking_metrics(e_own, times[:L], spec.steady_start_s)
-            rows.append({"scenario": spec.scenario, "disturbance": spec.disturbance, "policy": names[p],
-                         "seed": seed, "steps": L, "terminated": bool(terminated_any[i]), "return": ret[i],
-                         **{f"true_{k}": v for k, v in m_true.items()},
-                         **{f"own_{k}": v for k, v in m_own.items()}})
+            per_step = (pose[:L, i], target[:L, i], ref[:L, i], force[:L, i]) if trajectories else ()
+            row, frame = _episode_outputs(spec, names[p], seed, terminated_any[i], ret[i], err[:L, i],
+                                          own[:L, i], *per_step)
+            rows.append(row)
             if trajectories:
-                c, s_ = np.cos(pose[:L, i, 2]), np.sin(pose[:L, i, 2])
-                ox = pose[:L, i, 0] + c * own[:L, i, 0] - s_ * own[:L, i, 1]
-                oy = pose[:L, i, 1] + s_ * own[:L, i, 0] + c * own[:L, i, 1]
-                trajs.append(pd.DataFrame({
-                    "scenario": spec.scenario, "disturbance": spec.disturbance, "policy": names[p],
-                    "seed": seed, "step": np.arange(1, L + 1), "time": times[:L],
-                    "follower_x": pose[:L, i, 0], "follower_y": pose[:L, i, 1], "follower_psi": pose[:L, i, 2],
-                    "target_x": target[:L, i, 0], "target_y": target[:L, i, 1], "target_psi": target[:L, i, 2],
-                    "true_ref_x": ref[:L, i, 0], "true_ref_y": ref[:L, i, 1], "own_ref_x": ox, "own_ref_y": oy,
-                    "err_true": err[:L, i], "err_own": e_own,
-                    "F_u": force[:L, i, 0], "F_v": force[:L, i, 1], "F_r": force[:L, i, 2]}))
+                trajs.append(frame)
     metrics = pd.DataFrame(rows)
     return (metrics, pd.concat(trajs, ignore_index=True)) if trajectories else metrics
