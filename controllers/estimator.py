@@ -371,18 +371,36 @@ class TargetEstimator:
         self._advance(st, o, mask)
         return self._present(st, o, with_cov)
 
-    def trajectory(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The predicted target pose at ``times`` (K,) seconds after the last :meth:`step`,
-        relative to the follower's pose at that step, in its body frame then.
-
-        Returns (x, y, psi), each (N, K); psi is continuous along the horizon (not wrapped),
-        starting from the wrapped relative heading. Envs without a fix give zeros.
+    def follower_odometry(self) -> tuple[np.ndarray, np.ndarray]:
+        """The follower's position (N, 2) in the odometry frame [m] and heading (N,) [rad] at the
+        last :meth:`step`.
 
         Raises:
-            ValueError: if :meth:`step` has not been called, or ``times`` is not 1-D finite >= 0.
+            ValueError: if :meth:`step` has not been called.
+        """
+        if self._s is None:
+            raise ValueError("follower_odometry() needs a step() first: no filter state yet")
+        return self._s.odom.copy(), self._s.psi_f.copy()
+
+    def trajectory(self, times: np.ndarray, frame: str = "body") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The predicted target pose at ``times`` (K,) seconds after the last :meth:`step`.
+
+        Args:
+            times: offsets from now [s], 1-D, finite, >= 0.
+            frame: "body": relative to the follower's pose at that step, in its body frame,
+                psi continuous along the horizon starting from the wrapped relative heading;
+                "odometry": in the odometry frame (psi as the filter carries it, unwrapped).
+
+        Returns:
+            (x, y, psi), each (N, K); envs without a fix give zeros.
+
+        Raises:
+            ValueError: if :meth:`step` has not been called, or a bad ``times`` or ``frame``.
         """
         if self._s is None:
             raise ValueError("trajectory() needs a step() first: no filter state yet")
+        if frame not in ("body", "odometry"):
+            raise ValueError(f"frame={frame!r} is invalid: must be 'body' or 'odometry'")
         tk = np.asarray(times, dtype=np.float64)
         if tk.ndim != 1 or not np.all(np.isfinite(tk)) or np.any(tk < 0):
             raise ValueError(f"times={times!r} is invalid: must be a 1-D array of finite numbers >= 0 [s]")
@@ -390,12 +408,14 @@ class TargetEstimator:
         n, K = st.x.shape[0], tk.shape[0]
         T = np.where(st.init, st.t_now - st.t_fix, 0.0)[:, None] + tk[None, :]
         X = propagate_mean(self.model, np.repeat(st.x[:, None, :], K, axis=1), T)  # (N, K, n)
+        ok = st.init[:, None]
+        z = np.zeros((n, K))
+        if frame == "odometry":
+            return np.where(ok, X[..., 0], z), np.where(ok, X[..., 1], z), np.where(ok, X[..., 2], z)
         psi_f = st.psi_f
         c, s = np.cos(psi_f)[:, None], np.sin(psi_f)[:, None]
         ex, ey = X[..., 0] - st.odom[:, 0, None], X[..., 1] - st.odom[:, 1, None]
         d0 = X[:, :1, 2] - psi_f[:, None]
         wrap0 = np.arctan2(np.sin(d0), np.cos(d0)) - d0
-        ok = st.init[:, None]
-        z = np.zeros((n, K))
         return (np.where(ok, c * ex + s * ey, z), np.where(ok, -s * ex + c * ey, z),
                 np.where(ok, X[..., 2] - psi_f[:, None] + wrap0, z))
