@@ -61,6 +61,7 @@ class MPCConfig:
     w_force: float = 1e-3  #: weight on the normalised force (force / limit) [-]
     w_rate: float = 1e-2  #: weight on the change of the normalised force between intervals [-]
     w_terminal: float = 5.0  #: multiplier of the state weights at the last node [-]
+    qp_solver: str = "osqp"  #: CasADi conic plugin for the SQP's QPs: "osqp" or "qrqp"
     disturbance_observer: bool = True  #: add the disturbance observer's estimate to the model
     dob_time_constant: float = 0.5  #: its low-pass time constant [s]
 
@@ -72,6 +73,8 @@ class MPCConfig:
             if not ok:
                 raise ValueError(f"{name}={v!r} is invalid: must be a finite number {'>' if strict else '>='} {lo}")
 
+        if self.qp_solver not in ("osqp", "qrqp"):
+            raise ValueError(f"qp_solver={self.qp_solver!r} is invalid: must be 'osqp' or 'qrqp'")
         num("horizon_s", 0.0, True)
         for n in ("w_pos", "w_psi", "w_vel", "w_r", "w_force", "w_rate"):
             num(n, 0.0, False)
@@ -142,12 +145,16 @@ def _build(spec: TaskSpec, cfg: MPCConfig):
     r = ca.vertcat(*res)
     gg = ca.vertcat(*g)
     Jr = ca.jacobian(r, w)
-    H = ca.mtimes(Jr.T, Jr)
+    H = ca.mtimes(Jr.T, Jr) + 1e-6 * ca.DM.eye(int(w.shape[0]))  # strictly convex QP (X0 has no cost)
     qp_data = ca.Function("qp_data", [w, p], [H, ca.mtimes(Jr.T, r), gg, ca.jacobian(gg, w)])
     Hs = ca.Function("hs", [w, p], [H]).sparsity_out(0)
     As = ca.Function("as", [w, p], [ca.jacobian(gg, w)]).sparsity_out(0)
-    qp = ca.conic("mpc_qp", "qrqp", {"h": Hs, "a": As},
-                  {"print_iter": False, "print_header": False, "print_info": False, "error_on_fail": False})
+    if cfg.qp_solver == "qrqp":
+        opts = {"print_iter": False, "print_header": False, "print_info": False, "error_on_fail": False}
+    else:
+        opts = {"osqp": {"verbose": False, "eps_abs": 1e-7, "eps_rel": 1e-7, "max_iter": 4000, "polish": True},
+                "warm_start_primal": True, "warm_start_dual": True, "error_on_fail": False}
+    qp = ca.conic("mpc_qp", cfg.qp_solver, {"h": Hs, "a": As}, opts)
     return qp_data, qp, int(w.shape[0]), int(gg.shape[0]), h
 
 
@@ -188,6 +195,9 @@ class MPCController(ScriptedPolicy):
         self._psi_unwrapped: np.ndarray | None = None
         self._u_prev: np.ndarray | None = None
         self.solve_times: list[float] = []
+        #: the first control of each env's last QP solution, before the safety clip (N, 3),
+        #: normalised by the force limits: what the constraints themselves gave
+        self.last_solution: np.ndarray | None = None
 
     # ------------------------------------------------------------------------------------
     def _references(self, valid: np.ndarray, x0: np.ndarray) -> np.ndarray:
@@ -246,6 +256,7 @@ class MPCController(ScriptedPolicy):
         refs = self._references(est.valid, x0)
         N = self.config.intervals
         out = np.zeros((n, NU))
+        raw = np.zeros((n, NU))
         for i in range(n):
             t0 = time.perf_counter()
             W = self._W[i]
@@ -265,11 +276,13 @@ class MPCController(ScriptedPolicy):
                 W += np.asarray(sol["x"]).ravel()
                 self._lam_a[i] = np.asarray(sol["lam_a"]).ravel()
                 self._lam_x[i] = np.asarray(sol["lam_x"]).ravel()
-            np.clip(W[self._nxw:], -1.0, 1.0, out=W[self._nxw:])
+            raw[i] = W[self._nxw:self._nxw + NU]
+            np.clip(W[self._nxw:], -1.0, 1.0, out=W[self._nxw:])  # safety only: the QP's bounds hold
             u0 = W[self._nxw:self._nxw + NU].copy()
             out[i] = u0
             self._u_prev[i] = u0
             self.solve_times.append(time.perf_counter() - t0)
+        self.last_solution = raw
         F = out * self._limits
         if self.dob is not None:
             self.dob.applied(F)
