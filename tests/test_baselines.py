@@ -103,3 +103,23 @@ def test_mpc_config_rejects_bad_values(kwargs, name):
 def test_mpc_rejects_a_bad_config_object():
     with pytest.raises(ValueError, match="config"):
         MPCController(make_config("S4").task_spec(), {"horizon_s": 1.0})
+
+
+@pytest.mark.parametrize("name", EXTENDED_CONTROLLERS)
+def test_our_controllers_can_be_the_base_of_a_residual_agent(name):
+    """With a zero residual the wrapper applies exactly what the base controller, run on the
+    same raw observations, commands; the CLI offers our controllers as bases and in compare."""
+    import gymnasium as gym
+
+    from agents.cli import build_parser
+    from agents.residual import ResidualWrapper
+
+    env = ResidualWrapper(gym.make("AUVFollow-S4-v0", episode_s=1.0), controller=name)
+    obs, _ = env.reset(seed=0)
+    base = make_controller(name, env.unwrapped.task_spec)
+    for k in range(8):
+        expected, _ = base.predict(obs[:16], episode_start=np.array([k == 0]))
+        obs, _, _, _, info = env.step(np.zeros(3))
+        np.testing.assert_array_equal(info["applied_action"], expected.astype(np.float64))
+    assert build_parser().parse_args(["train", "--controller", name]).controller == name
+    assert name in build_parser().parse_args(["compare"]).controllers
