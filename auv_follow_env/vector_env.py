@@ -30,7 +30,8 @@ _parallel_step = None  # compiled on first use of parallel=True only (no threads
 
 
 def _get_parallel_step():
-    """``step(state, k, buf, p, cfg, obs, truth, err_hist, rew, term, action)`` over threads.
+    """``step(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, chunks)``
+    over threads.
 
     The same :func:`~auv_follow_env.dynamics.step_kernel`, called on contiguous chunks of
     the batch from a ``prange`` loop: no second copy of the physics. The caller checks the
@@ -44,14 +45,14 @@ def _get_parallel_step():
         from auv_follow_env.dynamics import step_kernel
 
         @njit(cache=True, parallel=True)
-        def step_chunks(state, k, buf, p, cfg, obs, truth, err_hist, rew, term, action, chunks):
+        def step_chunks(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, chunks):
             n = state.shape[0]
             for c in prange(chunks):
                 a = c * n // chunks
                 b = (c + 1) * n // chunks
                 if b > a:
-                    step_kernel(state[a:b], k[a:b], buf[a:b], p[a:b], cfg, obs[a:b], truth[a:b],
-                                err_hist[a:b], rew[a:b], term[a:b], action[3 * a:3 * b])
+                    step_kernel(state[a:b], k[a:b], proc[a:b], queue[a:b], rs[a:b], p[a:b], cfg, obs[a:b],
+                                truth[a:b], err_hist[a:b], rew[a:b], term[a:b], action[3 * a:3 * b])
 
         _parallel_step = (step_chunks, numba)
     return _parallel_step
