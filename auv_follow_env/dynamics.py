@@ -99,7 +99,8 @@ R_HAS, R_NEW = 16, 17  # a packet is held / a newer one arrived this step
 R_HMEAS, R_HARR = 18, 19  # held packet's measurement and arrival steps
 R_HX = 20  # held packet's measured (x, y, psi, u, v, r), columns 20-25
 R_QHEAD, R_QLEN = 26, 27  # queue ring head index and length
-R_SENT, R_LOST, R_ARRIVED, R_DISCARDED, R_OVERFLOW = 28, 29, 30, 31, 32  # counters (from t = 0)
+R_SENT, R_LOST, R_ARRIVED, R_DISCARDED, R_OVERFLOW = 28, 29, 30, 31, 32  # counters (packets sent
+#   from t = 0 on)
 R_GAUSS_HAS, R_GAUSS = 33, 34  # cached second Box-Muller deviate
 NR = 35
 Q_MEAS, Q_ARR, Q_X = 0, 1, 2  # queue entry: measurement step, arrival step, state at 2-7
@@ -457,10 +458,10 @@ def _send(state, proc, queue, rs, p, cfg, i, step):
     n = int(proc[i, R_QLEN])
     head = int(proc[i, R_QHEAD])
     if n == Q:  # full: the oldest packet in flight is dropped
+        if queue[i, head, Q_MEAS] >= 0:
+            proc[i, R_OVERFLOW] += 1.0
         head = (head + 1) % Q
         n -= 1
-        if counting:
-            proc[i, R_OVERFLOW] += 1.0
     slot = (head + n) % Q
     queue[i, slot, Q_MEAS] = step
     queue[i, slot, Q_ARR] = step + math.ceil(lat - 1e-6)
@@ -502,9 +503,13 @@ def link_tick(state, proc, queue, rs, p, cfg, i, step):
     proc[i, R_HARR] = step
     proc[i, R_HAS] = 1.0
     proc[i, R_NEW] = 1.0
-    if step >= 0:
+    # counters cover the packets sent from t = 0 on: sent = lost + arrived + discarded + overflow
+    # + still in flight
+    if queue[i, slot, Q_MEAS] >= 0:
         proc[i, R_ARRIVED] += 1.0
-        proc[i, R_DISCARDED] += newest  # older packets still in flight: would arrive out of order
+    for m in range(newest):  # older packets still in flight: they would arrive out of order
+        if queue[i, (head + m) % Q, Q_MEAS] >= 0:
+            proc[i, R_DISCARDED] += 1.0
     proc[i, R_QHEAD] = (head + newest + 1) % Q
     proc[i, R_QLEN] = n - newest - 1
 

@@ -636,14 +636,14 @@ def make_config(scenario: str = "S4", disturbance: str | None = None, *, version
         def hi(name: str) -> float:
             return rng_map[name][1] if name in rng_map else float(cond_kw.get(name, CONDITION_INDEX[name].default or 0))
         cond_kw["warmup_s"] = min(120.0, hi("latency_s") + 3 * hi("latency_spread_s") + 2 * hi("update_period_s"))
-    # validate both ends of every range with the field's own bounds
-    for k, (lo, hi_) in rng_map.items():
-        for end in (lo, hi_):
+    # validate the ranges with the fields' own bounds: all lower ends, all upper ends, then the
+    # base condition at the ranges' midpoints (what the task spec reports)
+    for end in (0, 1):
+        for k, r in rng_map.items():
             if k == "mismatch":
-                _in_range("mismatch", end, *BOUNDS["mismatch"][:2])
-            else:
-                Condition(**{**cond_kw, k: end})
-    cond = Condition(**cond_kw)
+                _in_range("mismatch", r[end], *BOUNDS["mismatch"][:2])
+        Condition(**{**cond_kw, **{k: r[end] for k, r in rng_map.items() if k != "mismatch"}})
+    cond = Condition(**{**cond_kw, **{k: 0.5 * (r[0] + r[1]) for k, r in rng_map.items() if k != "mismatch"}})
     if "mismatch" in rng_map:
         env_kw["mismatch"] = 0.5 * sum(rng_map["mismatch"])
     env_kw.setdefault("delay_s", 0.0)
