@@ -28,8 +28,8 @@ from types import MappingProxyType
 
 from auv_follow_env.params import CONDITION_INDEX, EnvConfig, make_config
 
-__all__ = ["Tier", "TIERS", "TIER_NAMES", "TRAIN_SEED_LIMIT", "check_training_seeds", "make_tier_config", "make_env_config",
-           "tier_table_markdown"]
+__all__ = ["Tier", "TIERS", "TIER_NAMES", "TRAIN_SEED_LIMIT", "check_training_seeds", "make_tier_config",
+           "make_env_config", "tier_table_markdown"]
 
 #: every published test seed is >= this; training seeds must be below it
 TRAIN_SEED_LIMIT = 1_000_000
