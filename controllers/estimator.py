@@ -62,6 +62,9 @@ __all__ = ["EstimatorConfig", "TargetEstimate", "TargetEstimator", "MODELS", "pr
 #: model name -> state dimension
 MODELS: dict[str, int] = {"CV": 6, "CT": 6, "CTA": 8}
 
+#: the model used on the v1 tiers (OU speed and turn rate: no persistent acceleration to estimate)
+TIER_MODEL = "CT"
+
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
 _CSTEP = 1e-30  # complex-step size (any tiny number: no subtractive cancellation)
 
@@ -100,6 +103,43 @@ class EstimatorConfig:
     @property
     def dim(self) -> int:
         return MODELS[self.model]
+
+    @classmethod
+    def for_spec(cls, spec: TaskSpec) -> EstimatorConfig:
+        """The settings for a task: v0 and custom v1 tasks get the defaults; a v1 tier gets
+        noise levels from its *published* table (:mod:`auv_follow_env.tiers`: what a follower
+        knows of its modem / USBL and of the target class, the middle of each drawn range):
+        fix noise as the link's, and the CT model with the process noise of the target's
+        Ornstein-Uhlenbeck speed and turn rate, q = 2 std^2 / correlation time (the white-noise
+        intensity of an OU process). Nothing here is fitted to test seeds.
+
+        Raises:
+            ValueError: if ``spec`` is not a TaskSpec.
+        """
+        if not isinstance(spec, TaskSpec):
+            raise ValueError(f"spec={spec!r} is invalid: must be an auv_follow_env TaskSpec")
+        tier = getattr(spec, "tier", None)
+        if tier is None:
+            return cls()
+        from auv_follow_env.tiers import TIERS
+
+        t = TIERS[tier]
+
+        def mid(name: str, default: float) -> float:
+            if name in t.ranges:
+                lo, hi = t.ranges[name]
+                return 0.5 * (lo + hi)
+            return float(t.fixed.get(name, default))
+
+        def pos(x: float, floor: float) -> float:
+            return max(x, floor)
+
+        return cls(model=TIER_MODEL, sigma_pos=pos(mid("fix_sigma_m", 0.0), 1e-3),
+                   sigma_pos_per_m=mid("fix_sigma_per_m", 0.0), sigma_psi=pos(mid("heading_sigma_rad", 0.0), 1e-3),
+                   sigma_vel=pos(mid("velocity_sigma_mps", 0.0), 1e-3),
+                   sigma_r=pos(mid("yaw_rate_sigma_radps", 0.0), 1e-4),
+                   q_acc=2 * mid("target_speed_std", 0.0) ** 2 / mid("target_speed_corr_s", 20.0) + 1e-6,
+                   q_yaw=2 * mid("target_yaw_rate_std", 0.0) ** 2 / mid("target_yaw_rate_corr_s", 10.0) + 1e-7)
 
     def process_intensity(self) -> np.ndarray:
         """Diagonal of the continuous white-noise intensity Q_c over the state."""
@@ -214,7 +254,7 @@ class TargetEstimator:
 
     Args:
         spec: the env's TaskSpec (dt, and the delay tau that v0 fixes carry).
-        config: :class:`EstimatorConfig` (default: CTA model, our tuned noise settings).
+        config: :class:`EstimatorConfig` (default: :meth:`EstimatorConfig.for_spec`).
 
     Call :meth:`step` once per control step with the observation batch and the per-env
     episode-start mask; it returns the present :class:`TargetEstimate`.
@@ -226,7 +266,7 @@ class TargetEstimator:
         if config is not None and not isinstance(config, EstimatorConfig):
             raise ValueError(f"config={config!r} is invalid: must be an EstimatorConfig or None")
         self.spec = spec
-        self.config = config if config is not None else EstimatorConfig()
+        self.config = config if config is not None else EstimatorConfig.for_spec(spec)
         self.model = self.config.model
         self._qc = self.config.process_intensity()
         self._s: _FilterState | None = None

@@ -46,6 +46,7 @@ class Args:
     seeds: int = 20  #: S1-S4 test seeds 0..seeds-1
     tier_seeds: int = 20  #: per v1 tier: the first N of its published test seeds (0: skip the tiers)
     controllers: list[str] = field(default_factory=lambda: list(ALL_CONTROLLERS))  #: controllers to run
+    episode_s: float | None = None  #: episode length override [s] (None: the env's 60 s; for smoke tests)
     progress: bool = True  #: progress bars
 
 
@@ -56,8 +57,11 @@ def parse_args(argv: list[str] | None = None) -> Args:
     p.add_argument("--tier-seeds", type=int, default=Args.tier_seeds,
                    help="per v1 tier: the first N published test seeds (0 = skip the tiers)")
     p.add_argument("--controllers", nargs="+", choices=ALL_CONTROLLERS, default=list(ALL_CONTROLLERS))
+    p.add_argument("--episode-s", type=float, default=None, help="episode length [s] (default: the env's)")
     p.add_argument("--no-progress", dest="progress", action="store_false")
     a = p.parse_args(argv)
+    if a.episode_s is not None and not a.episode_s > 0:
+        p.error(f"--episode-s must be > 0, got {a.episode_s}")
     if a.seeds < 2:
         p.error(f"--seeds must be >= 2 (a confidence interval needs two seeds), got {a.seeds}")
     if a.tier_seeds < 0 or a.tier_seeds == 1:
@@ -69,24 +73,23 @@ def parse_args(argv: list[str] | None = None) -> Args:
 
 
 def v1_tiers() -> list[tuple[str, list[int]]]:
-    """(env id, published test seeds) of every v1 tier, if this version of auv_follow_env has them."""
-    try:
-        from auv_follow_env import tiers  # type: ignore[attr-defined]
-    except ImportError:
-        return []
-    return [(env_id, list(tiers.test_seeds(env_id))) for env_id in tiers.TIER_IDS]
+    """(env id, published test seeds) of every v1 tier (:mod:`auv_follow_env.tiers`)."""
+    from auv_follow_env.tiers import TIERS
+
+    return [(t.env_id, list(t.test_seeds)) for t in TIERS.values()]
 
 
-def run(env_id: str, seeds: list[int], names: list[str], progress: bool) -> pd.DataFrame:
-    """All ``names`` on ``env_id`` and ``seeds`` in one batched run (MPC timed apart)."""
+def run(env_id: str, seeds: list[int], names: list[str], progress: bool,
+        env_kwargs: dict | None = None) -> pd.DataFrame:
+    """All ``names`` on ``env_id`` and ``seeds`` in one batched run."""
     import gymnasium as gym
 
-    probe = gym.make(env_id)
+    probe = gym.make(env_id, **(env_kwargs or {}))
     spec = probe.unwrapped.task_spec
     probe.close()
     t0 = time.perf_counter()
     df = evaluate_batched([make_controller(n, spec) for n in names], env_id, seeds, policy_names=names,
-                          progress=progress)
+                          env_kwargs=env_kwargs, progress=progress)
     df["env_id"] = env_id
     print(f"{env_id}: {len(names)} controllers x {len(seeds)} seeds in {time.perf_counter() - t0:.0f} s", flush=True)
     return df
@@ -158,7 +161,9 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     jobs = [(f"AUVFollow-{sc}-v0", list(range(args.seeds))) for sc in SCENARIOS]
     if args.tier_seeds:
         jobs += [(env_id, seeds[:args.tier_seeds]) for env_id, seeds in v1_tiers()]
-    per_episode = pd.concat([run(env_id, seeds, args.controllers, args.progress) for env_id, seeds in jobs],
+    kw = ({"episode_s": args.episode_s, "steady_start_s": min(10.0, args.episode_s / 2)}
+          if args.episode_s is not None else None)
+    per_episode = pd.concat([run(env_id, seeds, args.controllers, args.progress, kw) for env_id, seeds in jobs],
                             ignore_index=True)
     s = summary(per_episode)
     per_episode.to_csv(args.out / "baselines.csv", index=False)

@@ -53,16 +53,20 @@ def main(argv: list[str] | None = None) -> str:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--episodes", type=int, default=3, help="S4 episodes (seeds 0..N-1) per setting")
     p.add_argument("--out", type=Path, default=Path("results/bench_mpc.md"))
+    p.add_argument("--episode-s", type=float, default=None, help="episode length [s] (default 60; smoke tests)")
     a = p.parse_args(argv)
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
-    spec = gym.make("AUVFollow-S4-v0").unwrapped.task_spec
+    if a.episode_s is not None and not a.episode_s > 0:
+        p.error(f"--episode-s must be > 0, got {a.episode_s}")
+    kw = {"episode_s": a.episode_s, "steady_start_s": min(10.0, a.episode_s / 2)} if a.episode_s is not None else {}
+    spec = gym.make("AUVFollow-S4-v0", **kw).unwrapped.task_spec
     rows = []
     for label, cfg in VARIANTS:
         mpc = MPCController(spec, cfg)
         check = _BoundCheck(mpc)
         t0 = time.perf_counter()
-        df = evaluate(mpc, "AUVFollow-S4-v0", range(a.episodes), progress=False)
+        df = evaluate(mpc, "AUVFollow-S4-v0", range(a.episodes), env_kwargs=kw, progress=False)
         wall = time.perf_counter() - t0
         ms = 1e3 * np.asarray(mpc.solve_times)
         rows.append((label, np.median(ms), np.percentile(ms, 99), ms.max(), wall / (a.episodes * spec.n_steps) * 1e3,
