@@ -28,9 +28,15 @@ with no retrodiction.
 | ``CV`` | x, y, psi, vx, vy, r | constant inertial velocity and yaw rate | vx, vy (q_acc), r (q_yaw) |
 | ``CT`` | x, y, psi, u, v, r | constant body velocity and turn rate (coordinated turn) | u, v (q_acc), r (q_yaw) |
 | ``CTA`` | CT + a, alpha | CT, constant accelerations a = u', alpha = r' | as CT; a (q_jerk), alpha (q_yaw_acc) |
+| ``OU`` | CT + u_bar | u reverts to u_bar (time constant tau_u), r to 0 (tau_r) | u, v (q_acc), r (q_yaw) |
 
-CV is a linear KF. CT and CTA are EKFs: the mean is propagated exactly (the position is the
-integral of the body velocity along the heading polynomial psi0 + r s + alpha s^2 / 2,
+OU is the v1 tiers' own target model (Ornstein-Uhlenbeck surge speed about an unknown mean
+u_bar and turn rate about 0): over a long gap between fixes its prediction relaxes to a
+straight line at the mean speed instead of extrapolating a turn for ever.
+
+CV is a linear KF. CT, CTA and OU are EKFs: the mean is propagated exactly (the position is
+the integral of the body velocity along the heading, psi0 + r s + alpha s^2 / 2 or
+psi0 + r0 tau_r (1 - exp(-s / tau_r)),
 evaluated by 16-point Gauss-Legendre quadrature: exact to rounding for the spans met here);
 the Jacobian is taken by complex-step differentiation of that same propagation (exact to
 rounding, no hand-written derivative to get wrong); the discrete process noise is
@@ -60,10 +66,10 @@ from auv_follow_env.params import TaskSpec
 __all__ = ["EstimatorConfig", "TargetEstimate", "TargetEstimator", "MODELS", "propagate_mean"]
 
 #: model name -> state dimension
-MODELS: dict[str, int] = {"CV": 6, "CT": 6, "CTA": 8}
+MODELS: dict[str, int] = {"CV": 6, "CT": 6, "CTA": 8, "OU": 7}
 
-#: the model used on the v1 tiers (OU speed and turn rate: no persistent acceleration to estimate)
-TIER_MODEL = "CT"
+#: the model used on the v1 tiers: their target's own (OU speed and turn rate)
+TIER_MODEL = "OU"
 
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
 _CSTEP = 1e-30  # complex-step size (any tiny number: no subtractive cancellation)
@@ -86,6 +92,9 @@ class EstimatorConfig:
     q_yaw_acc: float = 1e-5  #: CTA: white-noise intensity on the yaw acceleration [rad^2/s^5]
     sigma_acc0: float = 0.05  #: CTA: prior std of the surge acceleration at the first fix [m/s^2]
     sigma_yaw_acc0: float = 0.02  #: CTA: prior std of the yaw acceleration at the first fix [rad/s^2]
+    tau_u: float = 20.0  #: OU: correlation time of the surge speed [s] (> 0)
+    tau_r: float = 10.0  #: OU: correlation time of the turn rate [s] (> 0)
+    sigma_ubar0: float = 0.05  #: OU: prior std of the mean speed about the first fix's speed [m/s]
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
@@ -96,7 +105,7 @@ class EstimatorConfig:
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{f.name}={v!r} is invalid: must be a finite number >= 0")
-        for n in ("sigma_pos", "sigma_psi", "sigma_vel", "sigma_r"):
+        for n in ("sigma_pos", "sigma_psi", "sigma_vel", "sigma_r", "tau_u", "tau_r"):
             if getattr(self, n) <= 0:
                 raise ValueError(f"{n}={getattr(self, n)!r} is invalid: must be a finite number > 0")
 
@@ -109,9 +118,9 @@ class EstimatorConfig:
         """The settings for a task: v0 and custom v1 tasks get the defaults; a v1 tier gets
         noise levels from its *published* table (:mod:`auv_follow_env.tiers`: what a follower
         knows of its modem / USBL and of the target class, the middle of each drawn range):
-        fix noise as the link's, and the CT model with the process noise of the target's
-        Ornstein-Uhlenbeck speed and turn rate, q = 2 std^2 / correlation time (the white-noise
-        intensity of an OU process). Nothing here is fitted to test seeds.
+        fix noise as the link's, and the OU model with the target's correlation times and
+        process noise q = 2 std^2 / correlation time (the white-noise intensity of an OU
+        process). Nothing here is fitted to test seeds.
 
         Raises:
             ValueError: if ``spec`` is not a TaskSpec.
@@ -139,21 +148,46 @@ class EstimatorConfig:
                    sigma_vel=pos(mid("velocity_sigma_mps", 0.0), 1e-3),
                    sigma_r=pos(mid("yaw_rate_sigma_radps", 0.0), 1e-4),
                    q_acc=2 * mid("target_speed_std", 0.0) ** 2 / mid("target_speed_corr_s", 20.0) + 1e-6,
-                   q_yaw=2 * mid("target_yaw_rate_std", 0.0) ** 2 / mid("target_yaw_rate_corr_s", 10.0) + 1e-7)
+                   q_yaw=2 * mid("target_yaw_rate_std", 0.0) ** 2 / mid("target_yaw_rate_corr_s", 10.0) + 1e-7,
+                   tau_u=mid("target_speed_corr_s", 20.0), tau_r=mid("target_yaw_rate_corr_s", 10.0),
+                   sigma_ubar0=pos(mid("target_speed_std", 0.05), 1e-3))
 
     def process_intensity(self) -> np.ndarray:
         """Diagonal of the continuous white-noise intensity Q_c over the state."""
         q = [0.0, 0.0, 0.0, self.q_acc, self.q_acc, self.q_yaw]
         if self.model == "CTA":
             q += [self.q_jerk, self.q_yaw_acc]
+        if self.model == "OU":
+            q += [1e-9]  # the mean speed: a constant, kept barely adaptable
         return np.asarray(q)
 
+    def prior_std(self) -> list[float]:
+        """Prior std of the states beyond the measured six, at the first fix."""
+        return {"CTA": [self.sigma_acc0, self.sigma_yaw_acc0], "OU": [self.sigma_ubar0]}.get(self.model, [])
 
-def propagate_mean(model: str, x: np.ndarray, T: np.ndarray) -> np.ndarray:
+
+def propagate_mean(model: str, x: np.ndarray, T: np.ndarray, taus: tuple[float, float] = (20.0, 10.0)) -> np.ndarray:
     """Exact noise-free motion of the state ``x`` (..., n) over ``T`` (...,) seconds.
 
-    Works on complex arrays (used for the complex-step Jacobian). ``T`` may be negative.
+    ``taus`` = (tau_u, tau_r) of the OU model. Works on complex arrays (used for the
+    complex-step Jacobian).
     """
+    if model == "OU":
+        tu, tr = taus
+        s = 0.5 * T[..., None] * (1.0 + _GL_X)
+        w = 0.5 * T[..., None] * _GL_W
+        ub = x[..., 6, None]
+        psi = x[..., 2, None] + x[..., 5, None] * tr * (1.0 - np.exp(-s / tr))
+        u = ub + (x[..., 3, None] - ub) * np.exp(-s / tu)
+        v = x[..., 4, None]
+        c, sn = np.cos(psi), np.sin(psi)
+        out = x.copy()
+        out[..., 0] = x[..., 0] + np.sum(w * (u * c - v * sn), axis=-1)
+        out[..., 1] = x[..., 1] + np.sum(w * (u * sn + v * c), axis=-1)
+        out[..., 2] = x[..., 2] + x[..., 5] * tr * (1.0 - np.exp(-T / tr))
+        out[..., 3] = x[..., 6] + (x[..., 3] - x[..., 6]) * np.exp(-T / tu)
+        out[..., 5] = x[..., 5] * np.exp(-T / tr)
+        return out
     if model == "CV":
         out = x.copy()
         out[..., 0] = x[..., 0] + x[..., 3] * T
@@ -179,22 +213,22 @@ def propagate_mean(model: str, x: np.ndarray, T: np.ndarray) -> np.ndarray:
     return out
 
 
-def _jacobian(model: str, x: np.ndarray, T: np.ndarray) -> np.ndarray:
+def _jacobian(model: str, x: np.ndarray, T: np.ndarray, taus: tuple[float, float]) -> np.ndarray:
     """d propagate_mean / d x, (N, n, n), by complex-step differentiation."""
     n = x.shape[-1]
     X = x[:, None, :] + 1j * _CSTEP * np.eye(n)[None]  # row j perturbs state j
-    Y = propagate_mean(model, X, np.repeat(T[:, None], n, axis=1))
+    Y = propagate_mean(model, X, np.repeat(T[:, None], n, axis=1), taus)
     return np.imag(Y).transpose(0, 2, 1) / _CSTEP  # [i, j] = d y_i / d x_j
 
 
 def _predict(model: str, x: np.ndarray, P: np.ndarray, T: np.ndarray, qc: np.ndarray,
-             with_cov: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+             taus: tuple[float, float], with_cov: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """Mean and covariance after ``T`` (N,) seconds: P' = Phi P Phi^T + Q(T)."""
-    xm = propagate_mean(model, x, T)
+    xm = propagate_mean(model, x, T, taus)
     if not with_cov:
         return xm, None
-    F = _jacobian(model, x, T)
-    Fh = _jacobian(model, x, 0.5 * T)
+    F = _jacobian(model, x, T, taus)
+    Fh = _jacobian(model, x, 0.5 * T, taus)
     Qc = np.diag(qc)
     Q = (T / 6.0)[:, None, None] * (Qc[None] + 4.0 * Fh @ Qc @ Fh.transpose(0, 2, 1)
                                     + F @ Qc @ F.transpose(0, 2, 1))
@@ -269,6 +303,7 @@ class TargetEstimator:
         self.config = config if config is not None else EstimatorConfig.for_spec(spec)
         self.model = self.config.model
         self._qc = self.config.process_intensity()
+        self._taus = (self.config.tau_u, self.config.tau_r)
         self._s: _FilterState | None = None
 
     def reset(self) -> None:
@@ -327,18 +362,18 @@ class TargetEstimator:
         if first.any():
             x0 = np.zeros((int(first.sum()), d))
             x0[:, :6] = z[first]
+            if self.model == "OU":
+                x0[:, 6] = z[first][:, 3]  # mean speed: the first fix's speed
             p0 = np.zeros((x0.shape[0], d))
             p0[:, :6] = var[first]
-            if d == 8:
-                p0[:, 6] = self.config.sigma_acc0 ** 2
-                p0[:, 7] = self.config.sigma_yaw_acc0 ** 2
+            p0[:, 6:] = np.square(self.config.prior_std())
             st.x[first] = x0
             st.P[first] = p0[:, :, None] * np.eye(d)[None]
             st.t_fix[first] = t_meas[first]
             st.init[first] = True
         upd = fresh & ~first
         if upd.any():
-            xp, Pp = _predict(self.model, st.x[upd], st.P[upd], t_meas[upd] - st.t_fix[upd], self._qc)
+            xp, Pp = _predict(self.model, st.x[upd], st.P[upd], t_meas[upd] - st.t_fix[upd], self._qc, self._taus)
             zi = z[upd]
             innov = zi - xp[:, :6]
             innov[:, 2] = np.arctan2(np.sin(innov[:, 2]), np.cos(innov[:, 2]))
@@ -353,7 +388,7 @@ class TargetEstimator:
 
     def _present(self, st: _FilterState, o: dict[str, np.ndarray], with_cov: bool) -> TargetEstimate:
         T = np.where(st.init, st.t_now - st.t_fix, 0.0)
-        x, P = _predict(self.model, st.x, st.P, T, self._qc, with_cov)
+        x, P = _predict(self.model, st.x, st.P, T, self._qc, self._taus, with_cov)
         valid = st.init.copy()
         x = np.where(valid[:, None], x, 0.0)
         psi_t = x[:, 2]
@@ -447,7 +482,7 @@ class TargetEstimator:
         st = self._s
         n, K = st.x.shape[0], tk.shape[0]
         T = np.where(st.init, st.t_now - st.t_fix, 0.0)[:, None] + tk[None, :]
-        X = propagate_mean(self.model, np.repeat(st.x[:, None, :], K, axis=1), T)  # (N, K, n)
+        X = propagate_mean(self.model, np.repeat(st.x[:, None, :], K, axis=1), T, self._taus)  # (N, K, n)
         ok = st.init[:, None]
         z = np.zeros((n, K))
         if frame == "odometry":

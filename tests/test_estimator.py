@@ -271,3 +271,67 @@ def test_estimator_rejects_bad_arguments():
         est.trajectory(np.array([-1.0]))
     with pytest.raises(ValueError, match="frame"):
         est.trajectory(np.array([1.0]), frame="inertial")
+
+
+def test_ou_model_mean_motion_matches_an_independent_integration():
+    """u -> u_bar with tau_u, r -> 0 with tau_r: compare with a fine RK4 of
+    x' = u cos psi - v sin psi, y' = u sin psi + v cos psi, psi' = r, u' = -(u - u_bar) / tau_u,
+    r' = -r / tau_r (v constant), written here."""
+    from controllers.estimator import propagate_mean
+
+    tu, tr = 12.0, 8.0
+    x0 = np.array([1.0, -2.0, 0.4, 0.7, 0.02, 0.15, 0.5])
+
+    def rhs(z):
+        x, y, p, u, v, r, ub = z
+        return np.array([u * math.cos(p) - v * math.sin(p), u * math.sin(p) + v * math.cos(p), r,
+                         -(u - ub) / tu, 0.0, -r / tr, 0.0])
+
+    z, h = x0.copy(), 0.001
+    for _ in range(9000):  # 9 s
+        k1 = rhs(z)
+        k2 = rhs(z + h / 2 * k1)
+        k3 = rhs(z + h / 2 * k2)
+        k4 = rhs(z + h * k3)
+        z = z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    out = propagate_mean("OU", x0[None], np.array([9.0]), (tu, tr))[0]
+    np.testing.assert_allclose(out, z, atol=1e-10)
+
+
+def test_tier_settings_come_from_the_published_tier_table():
+    import gymnasium as gym
+
+    import auv_follow_env  # noqa: F401
+
+    spec = gym.make("AUVFollow-Hard-v1").unwrapped.task_spec
+    cfg = EstimatorConfig.for_spec(spec)
+    assert cfg.model == "OU"
+    assert cfg.sigma_pos == pytest.approx(0.075)  # middle of fix_sigma_m in [0.05, 0.10]
+    assert cfg.sigma_pos_per_m == pytest.approx(0.02)
+    assert cfg.tau_u == pytest.approx(12.0) and cfg.tau_r == pytest.approx(8.0)
+    assert cfg.q_acc == pytest.approx(2 * 0.09 ** 2 / 12.0 + 1e-6)  # OU intensity 2 std^2 / tau
+    assert cfg.q_yaw == pytest.approx(2 * 0.07 ** 2 / 8.0 + 1e-7)
+    assert EstimatorConfig.for_spec(make_task_spec("S4")) == EstimatorConfig()
+    with pytest.raises(ValueError, match="spec"):
+        EstimatorConfig.for_spec("Hard")
+
+
+@pytest.mark.parametrize("name", ["PROPOSED_KF", "PROPOSED_KF_DOB"])
+def test_our_controllers_run_on_a_v1_tier(name):
+    import gymnasium as gym
+
+    import auv_follow_env  # noqa: F401
+    from controllers import make_controller
+
+    env = gym.make("AUVFollow-Hard-v1", episode_s=20.0, steady_start_s=5.0)
+    c = make_controller(name, env.unwrapped.task_spec)
+    obs, _ = env.reset(seed=7)
+    start = True
+    for _ in range(400):
+        a, _ = c.predict(obs, episode_start=np.array([start]))
+        start = False
+        assert np.all(np.isfinite(a))
+        obs, _, term, trunc, info = env.step(a)
+        if term or trunc:
+            break
+    assert np.isfinite(info["tracking_error"])
