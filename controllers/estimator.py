@@ -12,8 +12,9 @@ with heading ``psi + dpsi``; the present estimate is returned both in that frame
 to the follower in its body frame (what the hierarchical law and the MPC use).
 
 **Timing.** v0 (16 fields): every observation carries a new fix exactly ``tau`` old. v1
-(20 fields): a fix is new on steps with ``new_packet`` = 1, measured at ``now - packet_age``;
-nothing is known while ``has_packet`` = 0. The filter state is held at the measurement time
+(20 fields): a fix is new on steps with ``new_packet`` = 1 (and the packet held when the
+episode starts, or when the filter has none yet), measured at ``now - packet_age``; nothing
+is known while ``has_packet`` = 0. The filter state is held at the measurement time
 ``t_fix`` of the newest fix used. On a step with a newer fix the state is predicted from
 ``t_fix`` to the fix's time and updated; the first fix initialises it; a fix not newer than
 ``t_fix`` (stale or out of order) is ignored; a step without a fix only predicts. Then, every
@@ -348,7 +349,8 @@ class TargetEstimator:
         st.vel = vel
         st.psi_f = psi_f
         if "packet_age" in o:
-            fresh = (o["has_packet"] > 0.5) & (o["new_packet"] > 0.5)
+            # a packet already held at the episode's start (received during the warm-up) is used too
+            fresh = (o["has_packet"] > 0.5) & ((o["new_packet"] > 0.5) | ~st.init)
             t_meas = st.t_now - o["packet_age"]
         else:
             fresh = np.ones(n, dtype=bool)

@@ -335,3 +335,14 @@ def test_our_controllers_run_on_a_v1_tier(name):
         if term or trunc:
             break
     assert np.isfinite(info["tracking_error"])
+
+
+def test_a_packet_held_at_the_episode_start_is_used_at_once():
+    """v1 episodes start after a warm-up: the first observation may hold a packet that arrived
+    earlier (has_packet = 1, new_packet = 0); the filter starts from it."""
+    est = TargetEstimator(SPEC, EstimatorConfig(model="CT"))
+    e = est.step(observation(0.0, ct_target(-1.3), v1=(1.3, 0.4, 0.0, 1.0)))
+    assert e.valid[0]
+    xt, yt, pt, *_ = ct_target(0.0)
+    ox, oy = to_odometry(0.0, xt, yt)
+    np.testing.assert_allclose([e.x[0], e.y[0], e.psi[0]], [ox, oy, pt], atol=1e-9)
