@@ -78,8 +78,12 @@ _CSTEP = 1e-30  # complex-step size (any tiny number: no subtractive cancellatio
 
 @dataclass(frozen=True, kw_only=True)
 class EstimatorConfig:
-    """Settings of :class:`TargetEstimator` (all ours; defaults tuned on seeds 100-119 of S1-S4,
-    see ``experiments/baselines.py``)."""
+    """Settings of :class:`TargetEstimator` (all ours). The defaults are for v0's exact, every-step
+    fixes: the q's were picked from a grid (CT and CTA, q_acc 1e-5..1e-2, q_yaw 1e-6..1e-3,
+    q_jerk 1e-5..1e-1, q_yaw_acc 1e-6..1e-2) by the steady-state true-reference RMSE of
+    PROPOSED_KF_DOB on seeds 100-119 of S1-S4 (never the scored seeds 0-19); the result is
+    flat in q_acc and q_yaw, and prefers large q_jerk / q_yaw_acc (trust the newest fixes'
+    accelerations: the fixes are exact). The v1 tiers use :meth:`for_spec`."""
 
     model: str = "CTA"  #: one of :data:`MODELS`
     sigma_pos: float = 0.01  #: fix position noise at zero range [m]
@@ -87,10 +91,10 @@ class EstimatorConfig:
     sigma_psi: float = 0.01  #: fix heading noise [rad]
     sigma_vel: float = 0.01  #: fix velocity noise [m/s]
     sigma_r: float = 0.005  #: fix yaw-rate noise [rad/s]
-    q_acc: float = 1e-3  #: white-noise intensity on the velocities u, v (vx, vy) [m^2/s^3]
-    q_yaw: float = 1e-4  #: white-noise intensity on the yaw rate [rad^2/s^3]
-    q_jerk: float = 1e-4  #: CTA: white-noise intensity on the surge acceleration [m^2/s^5]
-    q_yaw_acc: float = 1e-5  #: CTA: white-noise intensity on the yaw acceleration [rad^2/s^5]
+    q_acc: float = 1e-5  #: white-noise intensity on the velocities u, v (vx, vy) [m^2/s^3]
+    q_yaw: float = 1e-6  #: white-noise intensity on the yaw rate [rad^2/s^3]
+    q_jerk: float = 0.1  #: CTA: white-noise intensity on the surge acceleration [m^2/s^5]
+    q_yaw_acc: float = 0.01  #: CTA: white-noise intensity on the yaw acceleration [rad^2/s^5]
     sigma_acc0: float = 0.05  #: CTA: prior std of the surge acceleration at the first fix [m/s^2]
     sigma_yaw_acc0: float = 0.02  #: CTA: prior std of the yaw acceleration at the first fix [rad/s^2]
     tau_u: float = 20.0  #: OU: correlation time of the surge speed [s] (> 0)
