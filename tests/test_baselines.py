@@ -27,9 +27,9 @@ SPEED = 0.5  # m/s
 def straight_line_run(policy, config, steps: int):
     """Run ``policy`` on one env whose target moves straight at SPEED; returns errors and forces."""
     sim = BatchSim(config, 1)
-    sim.params[0] = param_row(vehicle=config.true_vehicle, target_speed=SPEED)
-    dyn.reset_kernel(sim.state, sim.k, sim.buf, sim.params, sim.cfg, np.zeros(1, dtype=np.int64), sim.obs,
-                     sim.truth)
+    sim.params[0] = param_row(vehicle=config.true_vehicle, target_speed=SPEED, latency_steps=config.delay_steps)
+    dyn.reset_kernel(sim.state, sim.k, sim.proc, sim.queue, sim.rs, sim.params, sim.cfg, np.zeros(1, dtype=np.int64),
+                     np.zeros(1, dtype=np.int64), np.zeros(1), sim.obs, sim.truth)
     err, forces, raw = [], [], []
     start = np.ones(1, dtype=bool)
     for _ in range(steps):
@@ -83,7 +83,8 @@ def test_mpc_converges_to_a_straight_line_reference_on_the_nominal_plant():
 def test_mpc_respects_the_force_limits_on_every_step():
     """Tight limits (20 N, 20 N, 4 N m) so the start saturates: the QP's own solution stays
     within [-1, 1] (before any safety clip) on every step, and reaches the bound."""
-    cfg = make_config("S4", "L2", force_limits=[20.0, 20.0, 4.0], episode_s=10.0)  # a list: params rejects a tuple here
+    cfg = make_config("S4", "L2", force_limits=[20.0, 20.0, 4.0], episode_s=10.0,
+                      steady_start_s=5.0)  # a list: params rejects a tuple here
     spec = cfg.task_spec()
     mpc = MPCController(spec, MPCConfig(horizon_s=2.0, intervals=10))
     _, forces, raw = straight_line_run(mpc, cfg, cfg.n_steps)
@@ -114,7 +115,7 @@ def test_our_controllers_can_be_the_base_of_a_residual_agent(name):
     from agents.cli import build_parser
     from agents.residual import ResidualWrapper
 
-    env = ResidualWrapper(gym.make("AUVFollow-S4-v0", episode_s=1.0), controller=name)
+    env = ResidualWrapper(gym.make("AUVFollow-S4-v0", episode_s=1.0, steady_start_s=0.5), controller=name)
     obs, _ = env.reset(seed=0)
     base = make_controller(name, env.unwrapped.task_spec)
     for k in range(8):

@@ -113,13 +113,14 @@ def test_noiseless_constant_turn_target_is_predicted_exactly_by_the_turn_models(
 
 def test_constant_velocity_model_misses_a_turn():
     """The CV model's velocity does not rotate: over tau = 2 s of a 0.08 rad/s turn at
-    0.5 m/s it is off by about 0.5 * v * r * tau^2 = 0.08 m, far above rounding."""
+    0.5 m/s it is off by at least about 0.5 * v * r * tau^2 = 0.08 m (more, as its velocity
+    also lags the turn), far above rounding."""
     est = TargetEstimator(SPEC, EstimatorConfig(model="CV"))
     e, t = run_v0(est, ct_target, 80)
     xt, yt, *_ = ct_target(t)
     ox, oy = to_odometry(t, xt, yt)
     miss = math.hypot(e.x[0] - ox, e.y[0] - oy)
-    assert 0.05 < miss < 0.12
+    assert 0.05 < miss < 0.5
 
 
 def test_cv_covariance_grows_as_the_closed_form_between_packets():
