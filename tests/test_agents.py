@@ -163,7 +163,13 @@ def test_cli_end_to_end(tmp_path, capsys):
           "--run-name", "cli", "--seed", "4", "--env-kwarg", "disturbance=L1"])
     run = tmp_path / "cli"
     assert (run / "model.zip").is_file() and (run / "eval" / "evaluations.npz").is_file()
-    assert yaml.safe_load((run / "config.yaml").read_text())["run"]["env_kwargs"] == {"disturbance": "L1"}
+    conf = yaml.safe_load((run / "config.yaml").read_text())
+    assert conf["run"]["env_kwargs"] == {"disturbance": "L1"}
+    # the final score: eval_episodes=1 episode from eval_seed 500, printed and recorded
+    assert conf["result"]["interrupted"] is False and conf["result"]["final_score"]["seeds"] == [500]
+    out = capsys.readouterr().out
+    assert "final score on AUVFollow-S4-v0, seeds 500-500" in out
+    assert f"{conf['result']['final_score']['true_steady_mean_m']:.4f} m" in out
     csv = tmp_path / "eval.csv"
     main(["evaluate", str(run), "--seeds", "1000", "--out", str(csv), "--no-progress"])
     assert csv.is_file()
@@ -171,12 +177,13 @@ def test_cli_end_to_end(tmp_path, capsys):
           "--out", str(tmp_path / "cmp"), "--no-progress"])
     for f in ("compare.csv", "compare_summary.csv", "compare.md", "compare.png"):
         assert (tmp_path / "cmp" / f).is_file()
+    out = capsys.readouterr().out
+    assert "| PROPOSED |" in out and f"in {tmp_path / 'cmp'}/" in out  # the table, and where it wrote
     import pandas as pd
 
     df = pd.read_csv(tmp_path / "cmp" / "compare.csv")
     assert len(df) == 6 and df.loc[df.policy.str.contains("residual"), "own_steady_mean"].isna().all()
     assert df.loc[df.policy == "PROPOSED", "own_steady_mean"].notna().all()
-    assert "PROPOSED" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("argv,needle", [
