@@ -210,3 +210,11 @@ def test_evaluate_accepts_a_spec_that_differs_only_in_unused_fields():
     spec = auv_follow_env.make_task_spec("S1", episode_s=60.0)
     m = evaluate(make_controller("PID", spec), "AUVFollow-S1-v0", [0], env_kwargs=SHORT, progress=False)
     assert len(m) == 1 and m["steps"].iloc[0] == 240
+
+
+def test_progress_in_a_log_has_no_nested_bars_or_cursor_codes(capsys):
+    # stderr captured by pytest is not a terminal: only the outer bar, no cursor-movement escape codes
+    evaluate_controllers(["PID"], scenarios=("S1",), seeds=[0], env_kwargs=SHORT, progress=True)
+    err = capsys.readouterr().err
+    assert "scenarios" in err  # the outer bar is kept
+    assert "policies x" not in err and "\x1b[" not in err
