@@ -1,7 +1,7 @@
 """The paper's published numbers (Tables 2-7) and its quantitative claims, as data and checks.
 
-Used by ``experiments/reproduce_paper.py``. The CSVs are copied from ``shared/paper``
-into ``experiments/data`` so the package is self-contained.
+Used by ``experiments/reproduce_paper.py``. The CSVs in ``experiments/data`` hold Tables 2, 3
+(signs restored, see ``docs/paper_notes.md``) and 4-7 as printed, so the package is self-contained.
 """
 
 from __future__ import annotations

@@ -230,7 +230,8 @@ def mismatch_floor_section(table: pd.DataFrame, seed: int = 0, progress: bool = 
               "larger one too, comes from the damping mismatch and the inner loop's gains, not from the predictor. "
               f"PROPOSED is {min(extra):+.1f}% to {max(extra):+.1f}% above ROBUST_ONLY at L0; that difference, not "
               "the floor, is what separates the two on this metric (the predicted reference moves differently from "
-              "what the feedforward (26) says, see docs/paper_notes.md). Where the floor dominates, no change to "
+              "what the feedforward (26) says, see [docs/paper_notes.md](../../docs/paper_notes.md)). "
+              "Where the floor dominates, no change to "
               "the reference generation can make one robust variant beat the other on this metric."]
     return "\n".join(lines) + "\n"
 
@@ -242,7 +243,8 @@ def diagnostic_section(table: pd.DataFrame, seed: int) -> str:
     from controllers.evaluation import evaluate
 
     lines = ["", "## DIAGNOSTIC (not the paper's equations): present-velocity feedforward", "",
-             "docs/paper_notes.md: PROPOSED with the feedforward (26) and r_d (29) fed by the *present* target "
+             "[docs/paper_notes.md](../../docs/paper_notes.md): PROPOSED with the feedforward (26) and r_d (29) "
+             "fed by the *present* target "
              "velocity, which a real follower does not have. Steady-state RMSE against the own reference, "
              "and its reduction against ROBUST_ONLY (paper: 33 / 54 / 46 / 50 %):", "",
              "| Scenario | ROBUST_ONLY | PROPOSED | DIAGNOSTIC | DIAGNOSTIC vs ROBUST_ONLY | error to true ref |",
