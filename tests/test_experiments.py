@@ -208,3 +208,22 @@ def test_full_reproduction_leaves_the_committed_results_unchanged(tmp_path):
         assert (tmp_path / name).read_text() == (committed / name).read_text(), name
     for name in ("tables.csv", "tables_seeds.csv"):
         pd.testing.assert_frame_equal(pd.read_csv(tmp_path / name), pd.read_csv(committed / name), rtol=1e-9)
+
+
+def test_output_path_keeps_committed_results_for_default_runs_only(capsys):
+    import argparse
+
+    from experiments.outputs import output_path
+
+    p = argparse.ArgumentParser()
+    p.add_argument("--out", default=None)
+    p.add_argument("--steps", type=int, default=100)
+    p.add_argument("--no-progress", dest="progress", action="store_false")
+    committed = Path("results/bench_x.md")
+    assert output_path(p.parse_args([]), p, committed) == committed
+    assert output_path(p.parse_args(["--no-progress"]), p, committed) == committed
+    assert output_path(p.parse_args(["--steps", "100"]), p, committed) == committed  # the default, spelled out
+    assert capsys.readouterr().err == ""
+    assert output_path(p.parse_args(["--steps", "5"]), p, committed) == Path("results/tmp/bench_x.md")
+    assert "--steps" in capsys.readouterr().err
+    assert output_path(p.parse_args(["--steps", "5", "--out", "mine.md"]), p, committed) == Path("mine.md")
