@@ -12,6 +12,7 @@ window is t >= 10 s.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
@@ -71,8 +72,6 @@ def check_task_spec(policy: Any, spec: TaskSpec, env_id: str = "the env") -> Non
 def _bar(iterable: Iterable, desc: str, progress: bool, nested: bool = False, **kw: Any):
     """tqdm over ``iterable`` if ``progress``; off for nested bars when stderr is not a terminal
     (no cursor-movement escape codes in logs), and plain lines rarely for the outer ones."""
-    import sys
-
     tty = sys.stderr.isatty()
     disable = not progress or (nested and not tty)
     return tqdm(iterable, desc=desc, disable=disable, leave=not nested, mininterval=0.1 if tty else 30.0,
