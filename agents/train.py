@@ -428,6 +428,47 @@ def _wall_clock_callback(max_seconds: float):
     return StopOnWallClock()
 
 
+class _StopOnSigint:
+    """Ctrl-C (SIGINT) during ``learn`` asks training to stop at the next step instead of
+    raising wherever the signal lands (inside torch, numba or a library that catches and
+    continues, which made an interrupt occasionally ineffective). A second Ctrl-C raises
+    KeyboardInterrupt at once. Only installed in the main thread."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._old: Any = None
+
+    def __enter__(self) -> _StopOnSigint:
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def __exit__(self, *exc: Any) -> None:
+        import signal
+
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+
+    def callback(self):
+        from stable_baselines3.common.callbacks import BaseCallback
+
+        flag = self
+
+        class StopOnSigint(BaseCallback):
+            def _on_step(self) -> bool:
+                return not flag.requested
+
+        return StopOnSigint()
+
+
 class _Progress:
     """Training progress over ``total`` new steps, never past 100 %: a tqdm bar on a terminal,
     otherwise a plain line per 10 % (no carriage returns or escape codes in logs)."""
@@ -731,8 +772,10 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
     t0 = time.perf_counter()
     interrupted = False
     try:
-        model.learn(total_timesteps=remaining, callback=callbacks, progress_bar=False,
-                    reset_num_timesteps=cfg.resume_from is None, tb_log_name="tb")
+        with _StopOnSigint() as sigint:
+            model.learn(total_timesteps=remaining, callback=[*callbacks, sigint.callback()], progress_bar=False,
+                        reset_num_timesteps=cfg.resume_from is None, tb_log_name="tb")
+        interrupted = sigint.requested
     except KeyboardInterrupt:
         interrupted = True
     finally:
