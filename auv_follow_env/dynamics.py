@@ -25,8 +25,8 @@ Array conventions (documented column maps below):
   speed and direction, coloured disturbances), the thrusters' applied forces and the link's
   state (next send, latency state, Gilbert-Elliott state, the held packet, queue pointers,
   counters); columns ``R_*`` below;
-* ``queue``  (N, Q, 8) float64: packets in flight, a FIFO ring in send order: measurement
-  step, arrival step, measured (x, y, psi, u, v, r) of the target;
+* ``queue``  (N, Q, NQ) float64: packets in flight, a FIFO ring in send order: measurement
+  step, arrival step, measured (x, y, psi, u, v, r) of the target, cos/sin of that psi;
 * ``rs``     (N,) uint64: each env's SplitMix64 generator state (seeded from the env's numpy
   generator at reset; v0 settings draw nothing from it);
 * ``params`` (N, NP) float64: per-episode plant/target/current/disturbance/link parameters;
@@ -102,8 +102,18 @@ R_QHEAD, R_QLEN = 26, 27  # queue ring head index and length
 R_SENT, R_LOST, R_ARRIVED, R_DISCARDED, R_OVERFLOW = 28, 29, 30, 31, 32  # counters (packets sent
 #   from t = 0 on)
 R_GAUSS_HAS, R_GAUSS = 33, 34  # cached second Box-Muller deviate
-NR = 35
+# libm values computed once and reused (each is a pure function of its key, so reusing it
+# changes no result): the ten tones at step R_TK (sines, cosines), and cos/sin of the
+# follower's and the target's heading with the heading they belong to (NaN keys: none)
+R_TK = 35  # step of the cached tone values
+R_TS, R_TC = 36, 46  # tone sines (36-45) and cosines (46-55) at t = R_TK * dt
+R_PSK, R_PSC, R_PSS = 56, 57, 58  # follower heading, its cos, its sin
+R_PTK, R_PTC, R_PTS = 59, 60, 61  # target heading, its cos, its sin
+R_HC, R_HS = 62, 63  # cos/sin of the held packet's heading
+NR = 64
 Q_MEAS, Q_ARR, Q_X = 0, 1, 2  # queue entry: measurement step, arrival step, state at 2-7
+Q_C, Q_S = 8, 9  # cos/sin of the measured heading
+NQ = 10
 
 # --- truth columns (per env, for evaluation only) ----------------------------------------
 T_FOLLOWER = slice(0, 3)  # x, y, psi
@@ -191,6 +201,15 @@ def target_velocity(p, i, t):
 def target_velocity_now(p, proc, i, t):
     """(u_t, r_t) at time t: tones plus the OU deviations held over the step, bounded."""
     ut, rt = target_velocity(p, i, t)
+    return (_clip(ut + proc[i, R_OUU], p[i, P_ULO], p[i, P_UHI]),
+            _clip(rt + proc[i, R_OUR], -p[i, P_RMAX], p[i, P_RMAX]))
+
+
+@njit(cache=True, inline="always")
+def _target_velocity_cached(p, proc, i):
+    """target_velocity_now at the step of env i's cached tones (same operations, sines cached)."""
+    ut = p[i, P_TV] * (1.0 + p[i, P_TAU] * proc[i, R_TS])
+    rt = p[i, P_TAR] * proc[i, R_TS + 1]
     return (_clip(ut + proc[i, R_OUU], p[i, P_ULO], p[i, P_UHI]),
             _clip(rt + proc[i, R_OUR], -p[i, P_RMAX], p[i, P_RMAX]))
 
@@ -419,17 +438,18 @@ def _rk4_block_lane(wk, h, b, exact):
 
 
 @njit(cache=True, error_model="numpy")
-def advance_block(wk, dt, nsub, m):
+def advance_block(wk, dt, nsub, m, pre):
     """Advance the m lanes of a block by dt from their times (row K_T0) in nsub RK4
     substeps, the forces (rows K_F..) held constant; the state rows change in place.
 
     The ten time-dependent tones are evaluated once at t0 and then rotated by half
     substeps (angle addition with small-angle cos/sin), so each stage time is exact to
-    rounding.
+    rounding. ``pre``: the caller has filled the tones' sines and cosines at t0 (rows K_S..,
+    K_C..) and cos/sin of both headings (rows K_C0, K_S0, K_CT, K_STT), e.g. from a cache.
     """
     h = dt / nsub
     hh = 0.5 * h
-    for j in range(10):  # libm: not vectorised
+    for j in range(0 if pre else 10):  # libm: not vectorised
         for b in range(m):
             a = wk[_ix(K_OM + j, b)] * wk[_ix(K_T0, b)] + wk[_ix(K_PH + j, b)]
             wk[_ix(K_S + j, b)] = math.sin(a)
@@ -450,7 +470,7 @@ def advance_block(wk, dt, nsub, m):
                 wk[_ix(K_RS + j, b)] = rsn
     for b in range(m):
         _forcing_lane(wk, K_S, K_F1, b)
-    for _ in range(nsub):
+    for sub in range(nsub):
         for c in range(7):
             for b in range(m):
                 wk[_ix(K_F0 + c, b)] = wk[_ix(K_F1 + c, b)]
@@ -464,7 +484,7 @@ def advance_block(wk, dt, nsub, m):
             row = K_FM if half == 0 else K_F1
             for b in range(m):
                 _forcing_lane(wk, K_S, row, b)
-        for b in range(m):  # libm: not vectorised
+        for b in range(0 if pre and sub == 0 else m):  # libm: not vectorised
             wk[_ix(K_C0, b)] = math.cos(wk[_ix(K_ST + 2, b)])
             wk[_ix(K_S0, b)] = math.sin(wk[_ix(K_ST + 2, b)])
             wk[_ix(K_CT, b)] = math.cos(wk[_ix(K_ST + 8, b)])
@@ -504,7 +524,7 @@ def integrate(state, p, cfg, t0, forces):
             wk[_ix(K_F + 1, b)] = forces[a + b, 1]
             wk[_ix(K_F + 2, b)] = forces[a + b, 2]
             wk[_ix(K_T0, b)] = t0[a + b]
-        advance_block(wk, dt, nsub, m)
+        advance_block(wk, dt, nsub, m, False)
         for b in range(m):
             for c in range(9):
                 state[a + b, c] = wk[_ix(K_ST + c, b)]
@@ -552,11 +572,42 @@ def _current_vector(proc, p, i):
     proc[i, R_CGY] = sp * math.sin(proc[i, R_CDIR])
 
 
+@njit(cache=True, inline="always")
+def _heading_trig(proc, key, col, x):
+    """(cos x, sin x), from env i's cache row ``proc`` if it holds them for x, else libm (cached)."""
+    if proc[key] != x or math.copysign(1.0, proc[key]) != math.copysign(1.0, x):  # (-0.0: sin differs)
+        proc[key] = x
+        proc[col] = math.cos(x)
+        proc[col + 1] = math.sin(x)
+    return proc[col], proc[col + 1]
+
+
+@njit(cache=True)
+def refresh_trig(state, k, proc, p, cfg, i):
+    """Make env i's cached libm values those of its present state and time (computed only
+    where the keys differ): the ten tones at t = k dt and cos/sin of both headings."""
+    pr = proc[i]
+    if pr[R_TK] != k[i]:
+        t = k[i] * cfg[C_DT]
+        for j in range(10):
+            oc = _TONE_OMEGA[j]
+            w = p[i, oc] if oc >= 0 else (_W1 if oc == -1 else _W2)
+            a = w * t + p[i, _TONE_PHASE[j]]
+            pr[R_TS + j] = math.sin(a)
+            pr[R_TC + j] = math.cos(a)
+        pr[R_TK] = k[i]
+    _heading_trig(pr, R_PSK, R_PSC, state[i, 2])
+    _heading_trig(pr, R_PTK, R_PTC, state[i, 8])
+
+
 @njit(cache=True)
 def _init_processes(proc, rs, p, i, direction):
     """Stationary start of env i's processes; link and thrusters empty."""
     for c in range(NR):
         proc[i, c] = 0.0
+    proc[i, R_TK] = math.nan
+    proc[i, R_PSK] = math.nan
+    proc[i, R_PTK] = math.nan
     if p[i, P_OUU_STD] > 0.0:
         proc[i, R_OUU] = p[i, P_OUU_STD] * normal01(rs, proc, i)
     if p[i, P_OUR_STD] > 0.0:
@@ -576,7 +627,10 @@ def _send(state, proc, queue, rs, p, cfg, i, step):
     """Measure the target at control step ``step`` and put the packet in flight (or lose it)."""
     dt = cfg[C_DT]
     xt, yt, pt = state[i, 6], state[i, 7], state[i, 8]
-    ut, rt = target_velocity_now(p, proc, i, step * dt)
+    if proc[i, R_TK] == step:  # the tones at this step are cached
+        ut, rt = _target_velocity_cached(p, proc, i)
+    else:
+        ut, rt = target_velocity_now(p, proc, i, step * dt)
     vt = 0.0
     # fix noise: position sigma grows with range (as a USBL's), heading, velocity, yaw rate
     s0 = p[i, P_NS0]
@@ -640,6 +694,12 @@ def _send(state, proc, queue, rs, p, cfg, i, step):
     queue[i, slot, Q_X + 3] = ut
     queue[i, slot, Q_X + 4] = vt
     queue[i, slot, Q_X + 5] = rt
+    if pt == proc[i, R_PTK] and math.copysign(1.0, pt) == math.copysign(1.0, proc[i, R_PTK]):
+        queue[i, slot, Q_C] = proc[i, R_PTC]  # unchanged by fix noise: cached
+        queue[i, slot, Q_S] = proc[i, R_PTS]
+    else:
+        queue[i, slot, Q_C] = math.cos(pt)
+        queue[i, slot, Q_S] = math.sin(pt)
     proc[i, R_QHEAD] = head
     proc[i, R_QLEN] = n + 1
 
@@ -672,6 +732,8 @@ def link_tick(state, proc, queue, rs, p, cfg, i, step):
     for c in range(6):
         proc[i, R_HX + c] = queue[i, slot, Q_X + c]
     proc[i, R_HMEAS] = queue[i, slot, Q_MEAS]
+    proc[i, R_HC] = queue[i, slot, Q_C]
+    proc[i, R_HS] = queue[i, slot, Q_S]
     proc[i, R_HARR] = step
     proc[i, R_HAS] = 1.0
     proc[i, R_NEW] = 1.0
@@ -712,15 +774,18 @@ def thrusters(proc, p, cfg, i, fu, fv, fr):
 
 @njit(cache=True)
 def _observe(state, k, proc, p, cfg, i, obs, truth):
-    """Fill obs[i] (what the follower has) and truth[i] (evaluation only); return error."""
+    """Fill obs[i] (what the follower has) and truth[i] (evaluation only); return error.
+
+    The tones and heading cos/sin come from env i's cache (:func:`refresh_trig`)."""
     dt = cfg[C_DT]
-    t = k[i] * dt
+    refresh_trig(state, k, proc, p, cfg, i)
     pdx = cfg[C_PDX]
     pdy = cfg[C_PDY]
     x, y, ps = state[i, 0], state[i, 1], state[i, 2]
-    c = math.cos(ps)
-    s = math.sin(ps)
-    cx, cy = current_inertial(p, i, t)
+    c = proc[i, R_PSC]
+    s = proc[i, R_PSS]
+    cx = p[i, P_CX] + p[i, P_CX + 1] * proc[i, R_TS + 2]  # current_inertial at t = k dt
+    cy = p[i, P_CY] + p[i, P_CY + 1] * proc[i, R_TS + 3]
     cx += proc[i, R_CGX]
     cy += proc[i, R_CGY]
     obs[i, 0] = state[i, 3]
@@ -731,8 +796,8 @@ def _observe(state, k, proc, p, cfg, i, obs, truth):
     if proc[i, R_HAS] != 0.0:
         # the newest received packet (v0: the target tau ago, eq. (12))
         xd, yd, psd = proc[i, R_HX], proc[i, R_HX + 1], proc[i, R_HX + 2]
-        cd = math.cos(psd)
-        sd = math.sin(psd)
+        cd = proc[i, R_HC]  # cos/sin of psd, computed when the packet was sent
+        sd = proc[i, R_HS]
         ex = xd - x
         ey = yd - y
         rx = xd + cd * pdx - sd * pdy - x  # delayed reference, eq. (21) without prediction
@@ -763,9 +828,9 @@ def _observe(state, k, proc, p, cfg, i, obs, truth):
         obs[i, 18] = proc[i, R_NEW]
     # truth: present target and the true reference (eq. (21) with eta_t(t))
     xt, yt, pst = state[i, 6], state[i, 7], state[i, 8]
-    ut, rt = target_velocity_now(p, proc, i, t)
-    ct = math.cos(pst)
-    st = math.sin(pst)
+    ut, rt = _target_velocity_cached(p, proc, i)
+    ct = proc[i, R_PTC]
+    st = proc[i, R_PTS]
     xr = xt + ct * pdx - st * pdy
     yr = yt + st * pdx + ct * pdy
     err = math.sqrt((x - xr) ** 2 + (y - yr) ** 2)
@@ -814,7 +879,7 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
         for step in range(-W, 0):
             _load_random_forcing(proc, i, wk, 0)
             wk[_ix(K_T0, 0)] = step * dt
-            advance_block(wk, dt, nsub, 1)
+            advance_block(wk, dt, nsub, 1, False)
             for c in range(9):
                 state[i, c] = wk[_ix(K_ST + c, 0)]
             update_processes(proc, rs, p, i)
@@ -874,7 +939,15 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, ter
             wk[_ix(K_F + 2, b)] = fr
             _load_random_forcing(proc, i, wk, b)
             wk[_ix(K_T0, b)] = k[i] * dt
-        advance_block(wk, dt, nsub, m)
+            refresh_trig(state, k, proc, p, cfg, i)  # (already current unless the state was changed)
+            for j in range(10):
+                wk[_ix(K_S + j, b)] = proc[i, R_TS + j]
+                wk[_ix(K_C + j, b)] = proc[i, R_TC + j]
+            wk[_ix(K_C0, b)] = proc[i, R_PSC]
+            wk[_ix(K_S0, b)] = proc[i, R_PSS]
+            wk[_ix(K_CT, b)] = proc[i, R_PTC]
+            wk[_ix(K_STT, b)] = proc[i, R_PTS]
+        advance_block(wk, dt, nsub, m, True)
         for b in range(m):
             i = a + b
             for c in range(9):
@@ -884,6 +957,7 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, ter
             a2 = min(1.0, max(-1.0, float(action[3 * i + 2])))
             k[i] += 1
             update_processes(proc, rs, p, i)
+            refresh_trig(state, k, proc, p, cfg, i)  # the new step's libm values, used from here on
             link_tick(state, proc, queue, rs, p, cfg, i, k[i])
             err = _observe(state, k, proc, p, cfg, i, obs, truth)
             if k[i] - 1 < err_hist.shape[1]:
