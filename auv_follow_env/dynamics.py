@@ -356,15 +356,13 @@ K_BIG = 135  # lane flag: an increment exceeded SMALL_ANGLE
 NK = 136
 
 
+_ZERO7 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
 @njit(cache=True, inline="always")
 def _ix(row, b):
     """Index of lane b of row ``row`` (unsigned: no negative-index wrap-around to check)."""
     return np.uint64(row * BLOCK + b)
-
-
-def block_buffer() -> np.ndarray:
-    """A zeroed work buffer for one block (NK * BLOCK doubles)."""
-    return np.zeros(NK * BLOCK)
 
 
 @njit(cache=True, error_model="numpy")
@@ -515,11 +513,12 @@ def integrate(state, p, cfg, t0, forces):
     n = state.shape[0]
     nsub = int(cfg[C_NSUB])
     dt = cfg[C_DT]
-    wk = np.zeros(NK * BLOCK)
+    wk = np.empty(NK * BLOCK)  # every row a lane reads is written first
     for a in range(0, n, BLOCK):
         m = min(BLOCK, n - a)
         gather_block(state, p, a, m, wk)
         for b in range(m):
+            _store7(wk, K_G, b, _ZERO7)  # the tones only
             wk[_ix(K_F, b)] = forces[a + b, 0]
             wk[_ix(K_F + 1, b)] = forces[a + b, 1]
             wk[_ix(K_F + 2, b)] = forces[a + b, 2]
@@ -924,7 +923,7 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, ter
     maxd = cfg[C_MAXD]
     nsteps = int(cfg[C_NSTEPS])
     effort = cfg[C_EFFORT]
-    wk = np.zeros(NK * BLOCK)
+    wk = np.empty(NK * BLOCK)  # every row a lane reads is written first
     for a in range(lo, hi, BLOCK):
         m = min(BLOCK, hi - a)
         gather_block(state, p, a, m, wk)
