@@ -8,6 +8,7 @@ reset with ``seed=s + i`` and then reset without a seed after each of its episod
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import numpy as np
@@ -33,9 +34,24 @@ _MIN_CHUNK = 64  # fewest envs per thread chunk when stepping in parallel
 
 
 def _num_threads() -> int:
+    """numba's thread count, without starting the threads (and loading the OpenMP runtime)
+    if they are not running yet."""
     import numba
+    from numba.np.ufunc import parallel
 
-    return numba.get_num_threads()
+    if getattr(parallel, "_is_initialized", True):
+        return numba.get_num_threads()
+    return int(numba.config.NUMBA_NUM_THREADS)
+
+
+def _sleeping_omp_threads() -> None:
+    """Let idle OpenMP worker threads sleep instead of spin (``OMP_WAIT_POLICY=PASSIVE``,
+    unless the variable is set already): between two steps the workers of numba's OpenMP
+    layer otherwise spin for CPU time that the stepping thread needs, and on a machine
+    shared with other processes a threaded step then ran up to 30x slower than a serial one
+    (measured here at load 7 on 2 cores). The cost is one wake-up (microseconds) per step.
+    Read when the OpenMP runtime loads, i.e. at the first threaded step of the process."""
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 _INFO_KEYS = ("tracking_error", "time", "true_target", "true_reference", "follower_pose")
@@ -95,7 +111,10 @@ class AUVFollowVectorEnv(VectorEnv):
     slices of the batch in a ``prange`` loop, the same per-env code), so the results are
     bit-identical either way; the speed-up is at most the number of free cores. The threaded
     kernel is compiled on its first use and then cached on disk like the others;
-    ``NUMBA_NUM_THREADS`` sets the thread count.
+    ``NUMBA_NUM_THREADS`` sets the thread count. Choosing the threads sets
+    ``OMP_WAIT_POLICY=PASSIVE`` in the process environment unless it is set (idle OpenMP
+    workers sleep rather than spin: spinning workers slowed threaded steps many times over
+    on a shared machine).
     """
 
     metadata = {"render_modes": [], "render_fps": 20, "autoreset_mode": AutoresetMode.NEXT_STEP}
@@ -136,6 +155,7 @@ class AUVFollowVectorEnv(VectorEnv):
             chunks = min(4 * threads, self.num_envs // _MIN_CHUNK)
             if chunks >= 2:
                 self._parallel = (dyn.step_kernel_parallel, chunks)
+                _sleeping_omp_threads()
         #: whether steps run on numba's threads (the resolved ``parallel`` argument)
         self.parallel = self._parallel is not None
         self._n_steps = n_steps
