@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> str:
     load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
     run_batched(8, 8)  # warm-up: numba compile, imports
     run_loop(1)
-    evaluate_controllers(seeds=[0], progress=False, batched=True, env_kwargs={"episode_s": 1.0})
+    evaluate_controllers(seeds=[0], progress=False, batched=True, env_kwargs={"episode_s": 1.0, "steady_start_s": 0.5})
     t_batch, mean_err = run_batched(a.episodes, a.chunk)
     t_sample = run_loop(a.loop_sample)
     t_loop = t_sample / a.loop_sample * a.episodes
