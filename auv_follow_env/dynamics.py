@@ -25,8 +25,8 @@ Array conventions (documented column maps below):
   speed and direction, coloured disturbances), the thrusters' applied forces and the link's
   state (next send, latency state, Gilbert-Elliott state, the held packet, queue pointers,
   counters); columns ``R_*`` below;
-* ``queue``  (N, Q, 8) float64: packets in flight, a FIFO ring in send order: measurement
-  step, arrival step, measured (x, y, psi, u, v, r) of the target;
+* ``queue``  (N, Q, NQ) float64: packets in flight, a FIFO ring in send order: measurement
+  step, arrival step, measured (x, y, psi, u, v, r) of the target, cos/sin of that psi;
 * ``rs``     (N,) uint64: each env's SplitMix64 generator state (seeded from the env's numpy
   generator at reset; v0 settings draw nothing from it);
 * ``params`` (N, NP) float64: per-episode plant/target/current/disturbance/link parameters;
@@ -48,7 +48,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 # --- parameter columns (per env) ---------------------------------------------------------
 P_M, P_IZ, P_XU, P_YV, P_NR = 0, 1, 2, 3, 4  # true plant [kg, kg m^2, N s/m, N s/m, N m s]
@@ -102,8 +102,18 @@ R_QHEAD, R_QLEN = 26, 27  # queue ring head index and length
 R_SENT, R_LOST, R_ARRIVED, R_DISCARDED, R_OVERFLOW = 28, 29, 30, 31, 32  # counters (packets sent
 #   from t = 0 on)
 R_GAUSS_HAS, R_GAUSS = 33, 34  # cached second Box-Muller deviate
-NR = 35
+# libm values computed once and reused (each is a pure function of its key, so reusing it
+# changes no result): the ten tones at step R_TK (sines, cosines), and cos/sin of the
+# follower's and the target's heading with the heading they belong to (NaN keys: none)
+R_TK = 35  # step of the cached tone values
+R_TS, R_TC = 36, 46  # tone sines (36-45) and cosines (46-55) at t = R_TK * dt
+R_PSK, R_PSC, R_PSS = 56, 57, 58  # follower heading, its cos, its sin
+R_PTK, R_PTC, R_PTS = 59, 60, 61  # target heading, its cos, its sin
+R_HC, R_HS = 62, 63  # cos/sin of the held packet's heading
+NR = 64
 Q_MEAS, Q_ARR, Q_X = 0, 1, 2  # queue entry: measurement step, arrival step, state at 2-7
+Q_C, Q_S = 8, 9  # cos/sin of the measured heading
+NQ = 10
 
 # --- truth columns (per env, for evaluation only) ----------------------------------------
 T_FOLLOWER = slice(0, 3)  # x, y, psi
@@ -173,7 +183,10 @@ def draw_normals(rs, proc, n):
 
 @njit(cache=True, inline="always")
 def _clip(x, lo, hi):
-    return min(hi, max(lo, x))
+    """min(hi, max(lo, x)) with Python's (and numba's builtin) semantics, written as selects so
+    that loops over envs vectorise (a NaN x gives lo, as max(lo, nan) does)."""
+    y = x if x > lo else lo
+    return y if y < hi else hi
 
 
 @njit(cache=True, inline="always")
@@ -193,6 +206,15 @@ def target_velocity_now(p, proc, i, t):
 
 
 @njit(cache=True, inline="always")
+def _target_velocity_cached(p, proc, i):
+    """target_velocity_now at the step of env i's cached tones (same operations, sines cached)."""
+    ut = p[i, P_TV] * (1.0 + p[i, P_TAU] * proc[i, R_TS])
+    rt = p[i, P_TAR] * proc[i, R_TS + 1]
+    return (_clip(ut + proc[i, R_OUU], p[i, P_ULO], p[i, P_UHI]),
+            _clip(rt + proc[i, R_OUR], -p[i, P_RMAX], p[i, P_RMAX]))
+
+
+@njit(cache=True, inline="always")
 def current_inertial(p, i, t):
     """Inertial current of the tones (v_cx, v_cy) at time t [m/s]."""
     cx = p[i, P_CX] + p[i, P_CX + 1] * math.sin(p[i, P_CX + 2] * t + p[i, P_CX + 3])
@@ -201,14 +223,8 @@ def current_inertial(p, i, t):
 
 
 @njit(cache=True, inline="always")
-def cos_sin_small(d):
-    """(cos d, sin d): Taylor polynomials (exact to double precision for |d| <= 0.25), libm beyond.
-
-    Used for the small angle increments inside one RK4 step (stage headings, tone phasors),
-    where it replaces libm calls that dominate the kernel's cost.
-    """
-    if abs(d) > 0.25:
-        return math.cos(d), math.sin(d)
+def _taylor_cos_sin(d):
+    """(cos d, sin d) by their Taylor polynomials (exact to double precision for |d| <= 0.25)."""
     d2 = d * d
     c = 1.0 - d2 / 2.0 * (1.0 - d2 / 12.0 * (1.0 - d2 / 30.0 * (1.0 - d2 / 56.0 * (
         1.0 - d2 / 90.0 * (1.0 - d2 / 132.0)))))
@@ -217,136 +233,308 @@ def cos_sin_small(d):
     return c, s
 
 
+#: |d| above which cos_sin_small calls libm
+SMALL_ANGLE = 0.25
+
+
 @njit(cache=True, inline="always")
-def _turn(c0, s0, d):
+def cos_sin_small(d, exact=True):
+    """(cos d, sin d): Taylor polynomials (exact to double precision for |d| <= 0.25), libm beyond.
+
+    Used for the small angle increments inside one RK4 step (stage headings, tone phasors),
+    where it replaces libm calls that dominate the kernel's cost. ``exact=False`` (a
+    compile-time constant in the block kernels) drops the libm branch so a loop over envs
+    vectorises; those callers flag the lanes with |d| > 0.25 and redo them with ``exact=True``.
+    """
+    if exact and abs(d) > SMALL_ANGLE:
+        return math.cos(d), math.sin(d)
+    return _taylor_cos_sin(d)
+
+
+@njit(cache=True, inline="always")
+def _turn(c0, s0, d, exact):
     """(cos, sin) of (angle + d) from (cos, sin) of the angle."""
-    cd, sd = cos_sin_small(d)
+    cd, sd = cos_sin_small(d, exact)
     return c0 * cd - s0 * sd, s0 * cd + c0 * sd
 
 
 @njit(cache=True, inline="always")
-def follower_rhs(p, i, f, c, s, u, v, r, fu, fv, fr):
-    """Right-hand side of eqs. (3)-(9) for the follower at heading (cos, sin) = (c, s),
-    given the forcing tuple f = (v_cx, v_cy, d_u, d_v, d_r, u_t, r_t)."""
+def follower_rhs(m, iz, xu, yv, nr, f, c, s, u, v, r, fu, fv, fr):
+    """Right-hand side of eqs. (3)-(9) for the follower at heading (cos, sin) = (c, s), with
+    true mass m, inertia iz and damping xu, yv, nr, given the forcing tuple
+    f = (v_cx, v_cy, d_u, d_v, d_r, u_t, r_t)."""
     ur = u - (c * f[0] + s * f[1])  # eq. (9) with eq. (5)
     vr = v - (-s * f[0] + c * f[1])
-    m = p[i, P_M]
     return (c * u - s * v, s * u + c * v, r,
-            (fu - p[i, P_XU] * ur + m * v * r + f[2]) / m,
-            (fv - p[i, P_YV] * vr - m * u * r + f[3]) / m,
-            (fr - p[i, P_NR] * r + f[4]) / p[i, P_IZ])
-
-
-@njit(cache=True)
-def rk4_substep(state, i, p, h, fu, fv, fr, f0, fm, f1):
-    """One classical RK4 step of length h for follower and target of env i (in place).
-
-    f0, fm, f1: the forcing at the step's start, midpoint and end (the stage times). The
-    stage headings psi + dpsi use cos/sin of psi and of the small increment dpsi.
-    """
-    x, y, ps, u, v, r = state[i, 0], state[i, 1], state[i, 2], state[i, 3], state[i, 4], state[i, 5]
-    hh = 0.5 * h
-    c0 = math.cos(ps)
-    s0 = math.sin(ps)
-    a0, a1, a2, a3, a4, a5 = follower_rhs(p, i, f0, c0, s0, u, v, r, fu, fv, fr)
-    c, s = _turn(c0, s0, hh * a2)
-    b0, b1, b2, b3, b4, b5 = follower_rhs(p, i, fm, c, s, u + hh * a3, v + hh * a4, r + hh * a5, fu, fv, fr)
-    c, s = _turn(c0, s0, hh * b2)
-    c0_, c1, c2, c3, c4, c5 = follower_rhs(p, i, fm, c, s, u + hh * b3, v + hh * b4, r + hh * b5, fu, fv, fr)
-    c, s = _turn(c0, s0, h * c2)
-    d0, d1, d2, d3, d4, d5 = follower_rhs(p, i, f1, c, s, u + h * c3, v + h * c4, r + h * c5, fu, fv, fr)
-    w = h / 6.0
-    state[i, 0] = x + w * (a0 + 2.0 * (b0 + c0_) + d0)
-    state[i, 1] = y + w * (a1 + 2.0 * (b1 + c1) + d1)
-    state[i, 2] = ps + w * (a2 + 2.0 * (b2 + c2) + d2)
-    state[i, 3] = u + w * (a3 + 2.0 * (b3 + c3) + d3)
-    state[i, 4] = v + w * (a4 + 2.0 * (b4 + c4) + d4)
-    state[i, 5] = r + w * (a5 + 2.0 * (b5 + c5) + d5)
-    # target, eq. (10) with v_t = 0: x' = u_t cos, y' = u_t sin, psi' = r_t
-    pt = state[i, 8]
-    c0 = math.cos(pt)
-    s0 = math.sin(pt)
-    cb, sb = _turn(c0, s0, hh * f0[6])
-    cc, sc = _turn(c0, s0, hh * fm[6])
-    cd, sd = _turn(c0, s0, h * fm[6])
-    state[i, 6] += w * (f0[5] * c0 + 2.0 * fm[5] * (cb + cc) + f1[5] * cd)
-    state[i, 7] += w * (f0[5] * s0 + 2.0 * fm[5] * (sb + sc) + f1[5] * sd)
-    state[i, 8] = pt + w * (f0[6] + 4.0 * fm[6] + f1[6])
-
-
-#: the ten tones of the forcing: (omega column or -1 for DIST_OMEGA[k], phase column)
-_TONE_OMEGA = np.array([P_TWU, P_TWR, P_CX + 2, P_CY + 2, -1, -2, -1, -2, -1, -2], dtype=np.int64)
-_TONE_PHASE = np.array([P_TPU, P_TPR, P_CX + 3, P_CY + 3, P_D + 1, P_D + 3, P_D + 5, P_D + 7, P_D + 9,
-                        P_D + 11], dtype=np.int64)
+            (fu - xu * ur + m * v * r + f[2]) / m,
+            (fv - yv * vr - m * u * r + f[3]) / m,
+            (fr - nr * r + f[4]) / iz)
 
 
 @njit(cache=True, inline="always")
-def _forcing_from(p, i, S, g):
-    """Forcing tuple (v_cx, v_cy, d_u [N], d_v [N], d_r [N m], u_t, r_t) from the ten tone sines S
-    and the step-constant random parts g = (v_cx, v_cy, d_u, d_v, d_r, u_t, r_t) (zeros in v0);
-    u_t and r_t are bounded (by +-inf in v0)."""
-    return (p[i, P_CX] + p[i, P_CX + 1] * S[2] + g[0], p[i, P_CY] + p[i, P_CY + 1] * S[3] + g[1],
-            p[i, P_D] * S[4] + p[i, P_D + 2] * S[5] + g[2], p[i, P_D + 4] * S[6] + p[i, P_D + 6] * S[7] + g[3],
-            p[i, P_D + 8] * S[8] + p[i, P_D + 10] * S[9] + g[4],
-            _clip(p[i, P_TV] * (1.0 + p[i, P_TAU] * S[0]) + g[5], p[i, P_ULO], p[i, P_UHI]),
-            _clip(p[i, P_TAR] * S[1] + g[6], -p[i, P_RMAX], p[i, P_RMAX]))
+def rk4_lane(x, y, ps, u, v, r, xt, yt, pt, c0, s0, ct, st, h, fu, fv, fr, m, iz, xu, yv, nr, f0, fm, f1,
+             exact):
+    """One classical RK4 step of length h for follower and target of one env.
+
+    (c0, s0) and (ct, st): cos/sin of the follower's and the target's heading at the step's
+    start; f0, fm, f1: the forcing at the step's start, midpoint and end (the stage times).
+    The stage headings psi + dpsi use cos/sin of psi and of the small increment dpsi.
+    Returns the nine new state values and whether an increment exceeded SMALL_ANGLE (only
+    meaningful with ``exact=False``: then the lane must be redone with ``exact=True``).
+    """
+    hh = 0.5 * h
+    a0, a1, a2, a3, a4, a5 = follower_rhs(m, iz, xu, yv, nr, f0, c0, s0, u, v, r, fu, fv, fr)
+    e1 = hh * a2
+    c, s = _turn(c0, s0, e1, exact)
+    b0, b1, b2, b3, b4, b5 = follower_rhs(m, iz, xu, yv, nr, fm, c, s, u + hh * a3, v + hh * a4, r + hh * a5,
+                                          fu, fv, fr)
+    e2 = hh * b2
+    c, s = _turn(c0, s0, e2, exact)
+    k0, k1, k2, k3, k4, k5 = follower_rhs(m, iz, xu, yv, nr, fm, c, s, u + hh * b3, v + hh * b4, r + hh * b5,
+                                          fu, fv, fr)
+    e3 = h * k2
+    c, s = _turn(c0, s0, e3, exact)
+    d0, d1, d2, d3, d4, d5 = follower_rhs(m, iz, xu, yv, nr, f1, c, s, u + h * k3, v + h * k4, r + h * k5,
+                                          fu, fv, fr)
+    w = h / 6.0
+    # target, eq. (10) with v_t = 0: x' = u_t cos, y' = u_t sin, psi' = r_t
+    e4 = hh * f0[6]
+    e5 = hh * fm[6]
+    e6 = h * fm[6]
+    cb, sb = _turn(ct, st, e4, exact)
+    cc, sc = _turn(ct, st, e5, exact)
+    cd, sd = _turn(ct, st, e6, exact)
+    big = ((abs(e1) > SMALL_ANGLE) | (abs(e2) > SMALL_ANGLE) | (abs(e3) > SMALL_ANGLE)
+           | (abs(e4) > SMALL_ANGLE) | (abs(e5) > SMALL_ANGLE) | (abs(e6) > SMALL_ANGLE))
+    return (x + w * (a0 + 2.0 * (b0 + k0) + d0),
+            y + w * (a1 + 2.0 * (b1 + k1) + d1),
+            ps + w * (a2 + 2.0 * (b2 + k2) + d2),
+            u + w * (a3 + 2.0 * (b3 + k3) + d3),
+            v + w * (a4 + 2.0 * (b4 + k4) + d4),
+            r + w * (a5 + 2.0 * (b5 + k5) + d5),
+            xt + w * (f0[5] * ct + 2.0 * fm[5] * (cb + cc) + f1[5] * cd),
+            yt + w * (f0[5] * st + 2.0 * fm[5] * (sb + sc) + f1[5] * sd),
+            pt + w * (f0[6] + 4.0 * fm[6] + f1[6])), big
+
+
+# --- structure-of-arrays blocks -------------------------------------------------------------
+# The batched kernels work on blocks of up to BLOCK envs at a time: the state, the parameters
+# the integrator reads and every intermediate are copied into rows of one flat work buffer
+# (row r of a block is ``wk[r * BLOCK : (r + 1) * BLOCK]``: one contiguous row per variable,
+# the env as the innermost index), so each loop over the envs of a block is branch-free and
+# vectorises (SIMD over envs; the rows of one buffer sit at compile-time distances, so the
+# compiler needs no aliasing checks). libm calls (which numba cannot vectorise without
+# changing their results) sit in loops of their own. Every env still goes through exactly
+# the same floating-point operations in the same order as a scalar per-env loop would, so
+# the results do not depend on the block size or on the lane.
+BLOCK = 32  #: envs per block (the work buffer: NK rows of BLOCK doubles, 35 KB, in L1/L2; 16 measured no faster)
+
+#: parameter columns gathered into a block (rows K_PP.. of the buffer), in this order
+_PP_COLS = np.array([P_M, P_IZ, P_XU, P_YV, P_NR,
+                     P_CX, P_CX + 1, P_CY, P_CY + 1, P_D, P_D + 2, P_D + 4, P_D + 6, P_D + 8, P_D + 10,
+                     P_TV, P_TAU, P_TAR, P_ULO, P_UHI, P_RMAX], dtype=np.int64)
+#: the ten tones of the forcing: (omega column or -1 / -2 for DIST_OMEGA[0] / [1], phase column);
+#: order: target surge, target yaw rate, current x, current y, then d_u, d_v, d_r (two tones each)
+_TONE_OMEGA = np.array([P_TWU, P_TWR, P_CX + 2, P_CY + 2, -1, -2, -1, -2, -1, -2], dtype=np.int64)
+_TONE_PHASE = np.array([P_TPU, P_TPR, P_CX + 3, P_CY + 3, P_D + 1, P_D + 3, P_D + 5, P_D + 7, P_D + 9,
+                        P_D + 11], dtype=np.int64)
+# rows of a block's work buffer
+K_ST = 0  # state x, y, psi, u, v, r, x_t, y_t, psi_t (rows 0-8)
+K_PP = 9  # gathered parameters, in _PP_COLS order (rows 9-29):
+K_M, K_IZ, K_XU, K_YV, K_NR = 9, 10, 11, 12, 13
+K_CX0, K_CX1, K_CY0, K_CY1, K_D = 14, 15, 16, 17, 18  # K_D..K_D + 5: disturbance amplitudes
+K_TV, K_TAU, K_TAR, K_ULO, K_UHI, K_RMAX = 24, 25, 26, 27, 28, 29
+K_OM, K_PH = 30, 40  # the ten tone frequencies [rad/s] and phases [rad]
+K_G = 50  # step-constant random forcing (v_cx, v_cy, d_u, d_v, d_r, u_t, r_t), rows 50-56
+K_F = 57  # applied forces, rows 57-59
+K_T0 = 60  # time at the step's start
+K_S, K_C, K_RC, K_RS = 61, 71, 81, 91  # tone sines, cosines and their half-substep rotation
+K_F0, K_FM, K_F1 = 101, 108, 115  # forcing at the substep's start, midpoint, end
+K_C0, K_S0, K_CT, K_STT = 122, 123, 124, 125  # cos/sin of the follower's and the target's heading
+K_OUT = 126  # new state, rows 126-134
+K_BIG = 135  # lane flag: an increment exceeded SMALL_ANGLE
+NK = 136
 
 
 _ZERO7 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
-@njit(cache=True)
-def advance(state, i, p, t0, dt, nsub, fu, fv, fr, scratch, g):
-    """Advance env i by dt from time t0 in nsub RK4 substeps, force held constant.
+@njit(cache=True, inline="always")
+def _ix(row, b):
+    """Index of lane b of row ``row`` (unsigned: no negative-index wrap-around to check)."""
+    return np.uint64(row * BLOCK + b)
 
-    The ten time-dependent tones are evaluated once at t0 and then rotated by half substeps
-    (angle addition with small-angle cos/sin), so each stage time is exact to rounding.
-    ``scratch`` is a (4, 10) float64 work array; ``g`` the step-constant random forcing.
+
+@njit(cache=True, error_model="numpy")
+def gather_block(state, p, a, m, wk):
+    """Copy envs a..a+m-1 of state (N, 9) and params (N, NP) into the block's rows."""
+    for b in range(m):
+        i = a + b
+        for c in range(9):
+            wk[_ix(K_ST + c, b)] = state[i, c]
+        for c in range(_PP_COLS.shape[0]):
+            wk[_ix(K_PP + c, b)] = p[i, _PP_COLS[c]]
+        for j in range(10):
+            oc = _TONE_OMEGA[j]
+            wk[_ix(K_OM + j, b)] = p[i, oc] if oc >= 0 else (_W1 if oc == -1 else _W2)
+            wk[_ix(K_PH + j, b)] = p[i, _TONE_PHASE[j]]
+
+
+@njit(cache=True, inline="always")
+def _forcing_lane(wk, row, out, b):
+    """Forcing (v_cx, v_cy, d_u [N], d_v [N], d_r [N m], u_t, r_t) of lane b into rows
+    ``out``.., from the ten tone sines in rows ``row``.. and the step-constant random parts
+    (zeros in v0); u_t and r_t are bounded (by +-inf in v0). (Stored element by element:
+    a returned tuple would not vectorise.)"""
+    wk[_ix(out, b)] = wk[_ix(K_CX0, b)] + wk[_ix(K_CX1, b)] * wk[_ix(row + 2, b)] + wk[_ix(K_G, b)]
+    wk[_ix(out + 1, b)] = wk[_ix(K_CY0, b)] + wk[_ix(K_CY1, b)] * wk[_ix(row + 3, b)] + wk[_ix(K_G + 1, b)]
+    wk[_ix(out + 2, b)] = (wk[_ix(K_D, b)] * wk[_ix(row + 4, b)] + wk[_ix(K_D + 1, b)] * wk[_ix(row + 5, b)]
+                           + wk[_ix(K_G + 2, b)])
+    wk[_ix(out + 3, b)] = (wk[_ix(K_D + 2, b)] * wk[_ix(row + 6, b)] + wk[_ix(K_D + 3, b)] * wk[_ix(row + 7, b)]
+                           + wk[_ix(K_G + 3, b)])
+    wk[_ix(out + 4, b)] = (wk[_ix(K_D + 4, b)] * wk[_ix(row + 8, b)] + wk[_ix(K_D + 5, b)] * wk[_ix(row + 9, b)]
+                           + wk[_ix(K_G + 4, b)])
+    wk[_ix(out + 5, b)] = _clip(wk[_ix(K_TV, b)] * (1.0 + wk[_ix(K_TAU, b)] * wk[_ix(row, b)]) + wk[_ix(K_G + 5, b)],
+                                wk[_ix(K_ULO, b)], wk[_ix(K_UHI, b)])
+    wk[_ix(out + 6, b)] = _clip(wk[_ix(K_TAR, b)] * wk[_ix(row + 1, b)] + wk[_ix(K_G + 6, b)], -wk[_ix(K_RMAX, b)],
+                                wk[_ix(K_RMAX, b)])
+
+
+@njit(cache=True, inline="always")
+def _store7(wk, row, b, f):
+    # written out (a loop over a tuple index would not vectorise)
+    wk[_ix(row, b)] = f[0]
+    wk[_ix(row + 1, b)] = f[1]
+    wk[_ix(row + 2, b)] = f[2]
+    wk[_ix(row + 3, b)] = f[3]
+    wk[_ix(row + 4, b)] = f[4]
+    wk[_ix(row + 5, b)] = f[5]
+    wk[_ix(row + 6, b)] = f[6]
+
+
+@njit(cache=True, inline="always")
+def _store9(wk, row, b, x):
+    _store7(wk, row, b, x)
+    wk[_ix(row + 7, b)] = x[7]
+    wk[_ix(row + 8, b)] = x[8]
+
+
+@njit(cache=True, inline="always")
+def _load7(wk, row, b):
+    return (wk[_ix(row, b)], wk[_ix(row + 1, b)], wk[_ix(row + 2, b)], wk[_ix(row + 3, b)],
+            wk[_ix(row + 4, b)], wk[_ix(row + 5, b)], wk[_ix(row + 6, b)])
+
+
+@njit(cache=True, inline="always")
+def _rk4_block_lane(wk, h, b, exact):
+    return rk4_lane(wk[_ix(K_ST, b)], wk[_ix(K_ST + 1, b)], wk[_ix(K_ST + 2, b)], wk[_ix(K_ST + 3, b)],
+                    wk[_ix(K_ST + 4, b)], wk[_ix(K_ST + 5, b)], wk[_ix(K_ST + 6, b)], wk[_ix(K_ST + 7, b)],
+                    wk[_ix(K_ST + 8, b)], wk[_ix(K_C0, b)], wk[_ix(K_S0, b)], wk[_ix(K_CT, b)],
+                    wk[_ix(K_STT, b)], h, wk[_ix(K_F, b)], wk[_ix(K_F + 1, b)], wk[_ix(K_F + 2, b)],
+                    wk[_ix(K_M, b)], wk[_ix(K_IZ, b)], wk[_ix(K_XU, b)], wk[_ix(K_YV, b)], wk[_ix(K_NR, b)],
+                    _load7(wk, K_F0, b), _load7(wk, K_FM, b), _load7(wk, K_F1, b), exact)
+
+
+@njit(cache=True, error_model="numpy")
+def advance_block(wk, dt, nsub, m, pre):
+    """Advance the m lanes of a block by dt from their times (row K_T0) in nsub RK4
+    substeps, the forces (rows K_F..) held constant; the state rows change in place.
+
+    The ten time-dependent tones are evaluated once at t0 and then rotated by half
+    substeps (angle addition with small-angle cos/sin), so each stage time is exact to
+    rounding. ``pre``: the caller has filled the tones' sines and cosines at t0 (rows K_S..,
+    K_C..) and cos/sin of both headings (rows K_C0, K_S0, K_CT, K_STT), e.g. from a cache.
     """
     h = dt / nsub
     hh = 0.5 * h
-    S, C, RC, RS = scratch[0], scratch[1], scratch[2], scratch[3]
+    for j in range(0 if pre else 10):  # libm: not vectorised
+        for b in range(m):
+            a = wk[_ix(K_OM + j, b)] * wk[_ix(K_T0, b)] + wk[_ix(K_PH + j, b)]
+            wk[_ix(K_S + j, b)] = math.sin(a)
+            wk[_ix(K_C + j, b)] = math.cos(a)
+    nbig = 0
     for j in range(10):
-        oc = _TONE_OMEGA[j]
-        w = p[i, oc] if oc >= 0 else (_W1 if oc == -1 else _W2)
-        a = w * t0 + p[i, _TONE_PHASE[j]]
-        S[j] = math.sin(a)
-        C[j] = math.cos(a)
-        RC[j], RS[j] = cos_sin_small(w * hh)
-    f0 = _forcing_from(p, i, S, g)
-    for _ in range(nsub):
+        for b in range(m):
+            d = wk[_ix(K_OM + j, b)] * hh
+            rc, rsn = cos_sin_small(d, False)
+            wk[_ix(K_RC + j, b)] = rc
+            wk[_ix(K_RS + j, b)] = rsn
+            nbig += abs(d) > SMALL_ANGLE
+    if nbig:
         for j in range(10):
-            s, c = S[j], C[j]
-            S[j] = s * RC[j] + c * RS[j]
-            C[j] = c * RC[j] - s * RS[j]
-        fm = _forcing_from(p, i, S, g)
-        for j in range(10):
-            s, c = S[j], C[j]
-            S[j] = s * RC[j] + c * RS[j]
-            C[j] = c * RC[j] - s * RS[j]
-        f1 = _forcing_from(p, i, S, g)
-        rk4_substep(state, i, p, h, fu, fv, fr, f0, fm, f1)
-        f0 = f1
+            for b in range(m):
+                rc, rsn = cos_sin_small(wk[_ix(K_OM + j, b)] * hh, True)
+                wk[_ix(K_RC + j, b)] = rc
+                wk[_ix(K_RS + j, b)] = rsn
+    for b in range(m):
+        _forcing_lane(wk, K_S, K_F1, b)
+    for sub in range(nsub):
+        for c in range(7):
+            for b in range(m):
+                wk[_ix(K_F0 + c, b)] = wk[_ix(K_F1 + c, b)]
+        for half in range(2):
+            for j in range(10):
+                for b in range(m):
+                    sj = wk[_ix(K_S + j, b)]
+                    cj = wk[_ix(K_C + j, b)]
+                    wk[_ix(K_S + j, b)] = sj * wk[_ix(K_RC + j, b)] + cj * wk[_ix(K_RS + j, b)]
+                    wk[_ix(K_C + j, b)] = cj * wk[_ix(K_RC + j, b)] - sj * wk[_ix(K_RS + j, b)]
+            row = K_FM if half == 0 else K_F1
+            for b in range(m):
+                _forcing_lane(wk, K_S, row, b)
+        for b in range(0 if pre and sub == 0 else m):  # libm: not vectorised
+            wk[_ix(K_C0, b)] = math.cos(wk[_ix(K_ST + 2, b)])
+            wk[_ix(K_S0, b)] = math.sin(wk[_ix(K_ST + 2, b)])
+            wk[_ix(K_CT, b)] = math.cos(wk[_ix(K_ST + 8, b)])
+            wk[_ix(K_STT, b)] = math.sin(wk[_ix(K_ST + 8, b)])
+        nbig = 0
+        for b in range(m):
+            out, big = _rk4_block_lane(wk, h, b, False)
+            _store9(wk, K_OUT, b, out)
+            wk[_ix(K_BIG, b)] = 1.0 if big else 0.0
+            nbig += big
+        if nbig:  # lanes with a large heading increment: redo them with libm cos/sin
+            for b in range(m):
+                if wk[_ix(K_BIG, b)] != 0.0:
+                    out, _big = _rk4_block_lane(wk, h, b, True)
+                    _store9(wk, K_OUT, b, out)
+        for c in range(9):
+            for b in range(m):
+                wk[_ix(K_ST + c, b)] = wk[_ix(K_OUT + c, b)]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def integrate(state, p, cfg, t0, forces):
     """Advance every env one control step from time t0[i] under forces (N, 3) [N, N, N m].
 
     The bare physics kernel (follower and target, the tones only), without link,
     observation or reward: what the speed benchmark compares the env against.
     """
+    n = state.shape[0]
     nsub = int(cfg[C_NSUB])
-    scratch = np.empty((4, 10))
-    for i in range(state.shape[0]):
-        advance(state, i, p, t0[i], cfg[C_DT], nsub, forces[i, 0], forces[i, 1], forces[i, 2], scratch,
-                _ZERO7)
+    dt = cfg[C_DT]
+    wk = np.empty(NK * BLOCK)  # every row a lane reads is written first
+    for a in range(0, n, BLOCK):
+        m = min(BLOCK, n - a)
+        gather_block(state, p, a, m, wk)
+        for b in range(m):
+            _store7(wk, K_G, b, _ZERO7)  # the tones only
+            wk[_ix(K_F, b)] = forces[a + b, 0]
+            wk[_ix(K_F + 1, b)] = forces[a + b, 1]
+            wk[_ix(K_F + 2, b)] = forces[a + b, 2]
+            wk[_ix(K_T0, b)] = t0[a + b]
+        advance_block(wk, dt, nsub, m, False)
+        for b in range(m):
+            for c in range(9):
+                state[a + b, c] = wk[_ix(K_ST + c, b)]
 
 
 @njit(cache=True, inline="always")
-def _random_forcing(proc, i):
-    return (proc[i, R_CGX], proc[i, R_CGY], proc[i, R_DN], proc[i, R_DN + 1], proc[i, R_DN + 2],
-            proc[i, R_OUU], proc[i, R_OUR])
+def _load_random_forcing(proc, i, wk, b):
+    """Env i's step-constant random forcing (v_cx, v_cy, d_u, d_v, d_r, u_t, r_t deviations)
+    into lane b of a block (rows K_G..)."""
+    _store7(wk, K_G, b, (proc[i, R_CGX], proc[i, R_CGY], proc[i, R_DN], proc[i, R_DN + 1], proc[i, R_DN + 2],
+                         proc[i, R_OUU], proc[i, R_OUR]))
 
 
 @njit(cache=True)
@@ -383,11 +571,42 @@ def _current_vector(proc, p, i):
     proc[i, R_CGY] = sp * math.sin(proc[i, R_CDIR])
 
 
+@njit(cache=True, inline="always")
+def _heading_trig(proc, key, col, x):
+    """(cos x, sin x), from env i's cache row ``proc`` if it holds them for x, else libm (cached)."""
+    if proc[key] != x or math.copysign(1.0, proc[key]) != math.copysign(1.0, x):  # (-0.0: sin differs)
+        proc[key] = x
+        proc[col] = math.cos(x)
+        proc[col + 1] = math.sin(x)
+    return proc[col], proc[col + 1]
+
+
+@njit(cache=True)
+def refresh_trig(state, k, proc, p, cfg, i):
+    """Make env i's cached libm values those of its present state and time (computed only
+    where the keys differ): the ten tones at t = k dt and cos/sin of both headings."""
+    pr = proc[i]
+    if pr[R_TK] != k[i]:
+        t = k[i] * cfg[C_DT]
+        for j in range(10):
+            oc = _TONE_OMEGA[j]
+            w = p[i, oc] if oc >= 0 else (_W1 if oc == -1 else _W2)
+            a = w * t + p[i, _TONE_PHASE[j]]
+            pr[R_TS + j] = math.sin(a)
+            pr[R_TC + j] = math.cos(a)
+        pr[R_TK] = k[i]
+    _heading_trig(pr, R_PSK, R_PSC, state[i, 2])
+    _heading_trig(pr, R_PTK, R_PTC, state[i, 8])
+
+
 @njit(cache=True)
 def _init_processes(proc, rs, p, i, direction):
     """Stationary start of env i's processes; link and thrusters empty."""
     for c in range(NR):
         proc[i, c] = 0.0
+    proc[i, R_TK] = math.nan
+    proc[i, R_PSK] = math.nan
+    proc[i, R_PTK] = math.nan
     if p[i, P_OUU_STD] > 0.0:
         proc[i, R_OUU] = p[i, P_OUU_STD] * normal01(rs, proc, i)
     if p[i, P_OUR_STD] > 0.0:
@@ -407,7 +626,10 @@ def _send(state, proc, queue, rs, p, cfg, i, step):
     """Measure the target at control step ``step`` and put the packet in flight (or lose it)."""
     dt = cfg[C_DT]
     xt, yt, pt = state[i, 6], state[i, 7], state[i, 8]
-    ut, rt = target_velocity_now(p, proc, i, step * dt)
+    if proc[i, R_TK] == step:  # the tones at this step are cached
+        ut, rt = _target_velocity_cached(p, proc, i)
+    else:
+        ut, rt = target_velocity_now(p, proc, i, step * dt)
     vt = 0.0
     # fix noise: position sigma grows with range (as a USBL's), heading, velocity, yaw rate
     s0 = p[i, P_NS0]
@@ -471,6 +693,12 @@ def _send(state, proc, queue, rs, p, cfg, i, step):
     queue[i, slot, Q_X + 3] = ut
     queue[i, slot, Q_X + 4] = vt
     queue[i, slot, Q_X + 5] = rt
+    if pt == proc[i, R_PTK] and math.copysign(1.0, pt) == math.copysign(1.0, proc[i, R_PTK]):
+        queue[i, slot, Q_C] = proc[i, R_PTC]  # unchanged by fix noise: cached
+        queue[i, slot, Q_S] = proc[i, R_PTS]
+    else:
+        queue[i, slot, Q_C] = math.cos(pt)
+        queue[i, slot, Q_S] = math.sin(pt)
     proc[i, R_QHEAD] = head
     proc[i, R_QLEN] = n + 1
 
@@ -503,6 +731,8 @@ def link_tick(state, proc, queue, rs, p, cfg, i, step):
     for c in range(6):
         proc[i, R_HX + c] = queue[i, slot, Q_X + c]
     proc[i, R_HMEAS] = queue[i, slot, Q_MEAS]
+    proc[i, R_HC] = queue[i, slot, Q_C]
+    proc[i, R_HS] = queue[i, slot, Q_S]
     proc[i, R_HARR] = step
     proc[i, R_HAS] = 1.0
     proc[i, R_NEW] = 1.0
@@ -543,15 +773,18 @@ def thrusters(proc, p, cfg, i, fu, fv, fr):
 
 @njit(cache=True)
 def _observe(state, k, proc, p, cfg, i, obs, truth):
-    """Fill obs[i] (what the follower has) and truth[i] (evaluation only); return error."""
+    """Fill obs[i] (what the follower has) and truth[i] (evaluation only); return error.
+
+    The tones and heading cos/sin come from env i's cache (:func:`refresh_trig`)."""
     dt = cfg[C_DT]
-    t = k[i] * dt
+    refresh_trig(state, k, proc, p, cfg, i)
     pdx = cfg[C_PDX]
     pdy = cfg[C_PDY]
     x, y, ps = state[i, 0], state[i, 1], state[i, 2]
-    c = math.cos(ps)
-    s = math.sin(ps)
-    cx, cy = current_inertial(p, i, t)
+    c = proc[i, R_PSC]
+    s = proc[i, R_PSS]
+    cx = p[i, P_CX] + p[i, P_CX + 1] * proc[i, R_TS + 2]  # current_inertial at t = k dt
+    cy = p[i, P_CY] + p[i, P_CY + 1] * proc[i, R_TS + 3]
     cx += proc[i, R_CGX]
     cy += proc[i, R_CGY]
     obs[i, 0] = state[i, 3]
@@ -562,8 +795,8 @@ def _observe(state, k, proc, p, cfg, i, obs, truth):
     if proc[i, R_HAS] != 0.0:
         # the newest received packet (v0: the target tau ago, eq. (12))
         xd, yd, psd = proc[i, R_HX], proc[i, R_HX + 1], proc[i, R_HX + 2]
-        cd = math.cos(psd)
-        sd = math.sin(psd)
+        cd = proc[i, R_HC]  # cos/sin of psd, computed when the packet was sent
+        sd = proc[i, R_HS]
         ex = xd - x
         ey = yd - y
         rx = xd + cd * pdx - sd * pdy - x  # delayed reference, eq. (21) without prediction
@@ -594,9 +827,9 @@ def _observe(state, k, proc, p, cfg, i, obs, truth):
         obs[i, 18] = proc[i, R_NEW]
     # truth: present target and the true reference (eq. (21) with eta_t(t))
     xt, yt, pst = state[i, 6], state[i, 7], state[i, 8]
-    ut, rt = target_velocity_now(p, proc, i, t)
-    ct = math.cos(pst)
-    st = math.sin(pst)
+    ut, rt = _target_velocity_cached(p, proc, i)
+    ct = proc[i, R_PTC]
+    st = proc[i, R_PTS]
     xr = xt + ct * pdx - st * pdy
     yr = yt + st * pdx + ct * pdy
     err = math.sqrt((x - xr) ** 2 + (y - yr) ** 2)
@@ -631,7 +864,7 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
     W = int(cfg[C_WARM])
     dt = cfg[C_DT]
     nsub = int(cfg[C_NSUB])
-    scratch = np.empty((4, 10))
+    wk = np.zeros(NK * BLOCK)  # forces stay 0 in the warm-up (the follower is placed below)
     for n in range(idx.shape[0]):
         i = idx[n]
         rs[i] = np.uint64(seeds[n])
@@ -641,9 +874,13 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
         proc[i, R_NEXT] = -W
         proc[i, R_LAST_SEND] = -W
         link_tick(state, proc, queue, rs, p, cfg, i, -W)
+        gather_block(state, p, i, 1, wk)
         for step in range(-W, 0):
-            advance(state, i, p, step * dt, dt, nsub, 0.0, 0.0, 0.0, scratch,
-                    _random_forcing(proc, i))  # follower rewritten below
+            _load_random_forcing(proc, i, wk, 0)
+            wk[_ix(K_T0, 0)] = step * dt
+            advance_block(wk, dt, nsub, 1, False)
+            for c in range(9):
+                state[i, c] = wk[_ix(K_ST + c, 0)]
             update_processes(proc, rs, p, i)
             link_tick(state, proc, queue, rs, p, cfg, i, step + 1)
         if proc[i, R_HAS] != 0.0:
@@ -665,6 +902,82 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
 
 
 @njit(cache=True)
+def first_bad_action(action):
+    """-1, or the env index of the first non-finite entry of the flat (3N,) action."""
+    for j in range(action.shape[0]):
+        if not math.isfinite(action[j]):
+            return j // 3
+    return -1
+
+
+@njit(cache=True, error_model="numpy")
+def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, lo, hi):
+    """One control step for envs lo..hi-1 (actions assumed finite; see :func:`step_kernel`).
+
+    Block by block: actions and thrusters per env, the RK4 step for the block's envs at
+    once (:func:`advance_block`), then per env the random processes, the link, the
+    observation, the reward and termination.
+    """
+    dt = cfg[C_DT]
+    nsub = int(cfg[C_NSUB])
+    maxd = cfg[C_MAXD]
+    nsteps = int(cfg[C_NSTEPS])
+    effort = cfg[C_EFFORT]
+    wk = np.empty(NK * BLOCK)  # every row a lane reads is written first
+    for a in range(lo, hi, BLOCK):
+        m = min(BLOCK, hi - a)
+        gather_block(state, p, a, m, wk)
+        for b in range(m):
+            i = a + b
+            a0 = min(1.0, max(-1.0, float(action[3 * i])))
+            a1 = min(1.0, max(-1.0, float(action[3 * i + 1])))
+            a2 = min(1.0, max(-1.0, float(action[3 * i + 2])))
+            fu, fv, fr = thrusters(proc, p, cfg, i, a0 * cfg[C_FU], a1 * cfg[C_FV], a2 * cfg[C_FR])
+            wk[_ix(K_F, b)] = fu
+            wk[_ix(K_F + 1, b)] = fv
+            wk[_ix(K_F + 2, b)] = fr
+            _load_random_forcing(proc, i, wk, b)
+            wk[_ix(K_T0, b)] = k[i] * dt
+            refresh_trig(state, k, proc, p, cfg, i)  # (already current unless the state was changed)
+            for j in range(10):
+                wk[_ix(K_S + j, b)] = proc[i, R_TS + j]
+                wk[_ix(K_C + j, b)] = proc[i, R_TC + j]
+            wk[_ix(K_C0, b)] = proc[i, R_PSC]
+            wk[_ix(K_S0, b)] = proc[i, R_PSS]
+            wk[_ix(K_CT, b)] = proc[i, R_PTC]
+            wk[_ix(K_STT, b)] = proc[i, R_PTS]
+        advance_block(wk, dt, nsub, m, True)
+        for b in range(m):
+            i = a + b
+            for c in range(9):
+                state[i, c] = wk[_ix(K_ST + c, b)]
+            a0 = min(1.0, max(-1.0, float(action[3 * i])))
+            a1 = min(1.0, max(-1.0, float(action[3 * i + 1])))
+            a2 = min(1.0, max(-1.0, float(action[3 * i + 2])))
+            k[i] += 1
+            update_processes(proc, rs, p, i)
+            refresh_trig(state, k, proc, p, cfg, i)  # the new step's libm values, used from here on
+            link_tick(state, proc, queue, rs, p, cfg, i, k[i])
+            err = _observe(state, k, proc, p, cfg, i, obs, truth)
+            if k[i] - 1 < err_hist.shape[1]:
+                err_hist[i, k[i] - 1] = err
+            finite = True
+            for c in range(9):
+                if not math.isfinite(state[i, c]):
+                    finite = False
+            if not finite:
+                for c in range(obs.shape[1]):
+                    obs[i, c] = 0.0
+                err = maxd
+            r = -err - effort * (a0 * a0 + a1 * a1 + a2 * a2) / 3.0
+            done = (not finite) or err > maxd
+            if done:
+                r -= maxd * max(0, nsteps - k[i])  # terminating never pays
+            rew[i] = r
+            term[i] = done
+
+
+@njit(cache=True)
 def step_kernel(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action):
     """One control step for every env of the batch.
 
@@ -673,40 +986,30 @@ def step_kernel(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, te
     case nothing at all was changed. Writes obs, truth, reward and termination flags, and
     the error sample into err_hist[i, k - 1].
     """
+    bad = first_bad_action(action)
+    if bad >= 0:
+        return bad
+    step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, 0, state.shape[0])
+    return -1
+
+
+@njit(cache=True, parallel=True)
+def step_kernel_parallel(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, chunks):
+    """:func:`step_kernel` on numba's threads: one parallel region per step, ``chunks``
+    contiguous slices of the batch (multiples of BLOCK envs) in a ``prange`` loop.
+
+    The same :func:`step_range` as the serial kernel, so the results are bit-identical
+    (every env's arithmetic and random draws are its own). Compiled (and cached on disk) on
+    first use only; importing the module starts no threads.
+    """
+    bad = first_bad_action(action)
+    if bad >= 0:
+        return bad
     n = state.shape[0]
-    for j in range(3 * n):
-        if not math.isfinite(action[j]):
-            return j // 3
-    dt = cfg[C_DT]
-    nsub = int(cfg[C_NSUB])
-    maxd = cfg[C_MAXD]
-    scratch = np.empty((4, 10))
-    nsteps = int(cfg[C_NSTEPS])
-    effort = cfg[C_EFFORT]
-    for i in range(n):
-        a0 = min(1.0, max(-1.0, float(action[3 * i])))
-        a1 = min(1.0, max(-1.0, float(action[3 * i + 1])))
-        a2 = min(1.0, max(-1.0, float(action[3 * i + 2])))
-        fu, fv, fr = thrusters(proc, p, cfg, i, a0 * cfg[C_FU], a1 * cfg[C_FV], a2 * cfg[C_FR])
-        advance(state, i, p, k[i] * dt, dt, nsub, fu, fv, fr, scratch, _random_forcing(proc, i))
-        k[i] += 1
-        update_processes(proc, rs, p, i)
-        link_tick(state, proc, queue, rs, p, cfg, i, k[i])
-        err = _observe(state, k, proc, p, cfg, i, obs, truth)
-        if k[i] - 1 < err_hist.shape[1]:
-            err_hist[i, k[i] - 1] = err
-        finite = True
-        for c in range(9):
-            if not math.isfinite(state[i, c]):
-                finite = False
-        if not finite:
-            for c in range(obs.shape[1]):
-                obs[i, c] = 0.0
-            err = maxd
-        r = -err - effort * (a0 * a0 + a1 * a1 + a2 * a2) / 3.0
-        done = (not finite) or err > maxd
-        if done:
-            r -= maxd * max(0, nsteps - k[i])  # terminating never pays
-        rew[i] = r
-        term[i] = done
+    nblk = (n + BLOCK - 1) // BLOCK
+    for c in prange(chunks):
+        lo = min(n, (c * nblk // chunks) * BLOCK)
+        hi = min(n, ((c + 1) * nblk // chunks) * BLOCK)
+        if hi > lo:
+            step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, lo, hi)
     return -1

@@ -197,7 +197,7 @@ class BatchSim:
         self.state = np.zeros((num_envs, 9))
         self.k = np.zeros(num_envs, dtype=np.int64)
         self.proc = np.zeros((num_envs, dyn.NR))
-        self.queue = np.zeros((num_envs, int(self.cfg[dyn.C_Q]), 8))
+        self.queue = np.zeros((num_envs, int(self.cfg[dyn.C_Q]), dyn.NQ))
         self.rs = np.zeros(num_envs, dtype=np.uint64)
         self.params = np.zeros((num_envs, dyn.NP))
         self.conditions: list[dict | None] = [None] * num_envs

@@ -8,6 +8,7 @@ reset with ``seed=s + i`` and then reset without a seed after each of its episod
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import numpy as np
@@ -16,6 +17,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from auv_follow_env import dynamics as dyn
 from auv_follow_env.env import check_action
 from auv_follow_env.metrics import METRIC_KEYS, tracking_metrics
 from auv_follow_env.params import TaskSpec
@@ -25,37 +27,35 @@ from auv_follow_env.tiers import make_env_config
 __all__ = ["AUVFollowVectorEnv"]
 
 _FAST_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
-_MIN_CHUNK = 128  # fewest envs per thread chunk (~0.14 ms of physics); smaller batches step serially
-_parallel_step = None  # compiled on first use of parallel=True only (no threads otherwise)
+#: fewest envs for the automatic parallel path (parallel=None): below it one step of the batch
+#: costs less than waking numba's threads
+PARALLEL_MIN_ENVS = 256
+_MIN_CHUNK = 64  # fewest envs per thread chunk when stepping in parallel
 
 
-def _get_parallel_step():
-    """``step(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, chunks)``
-    over threads.
+def _num_threads() -> int:
+    """numba's thread count, without starting the threads (and loading the OpenMP runtime)
+    if they are not running yet."""
+    import numba
+    from numba.np.ufunc import parallel
 
-    The same :func:`~auv_follow_env.dynamics.step_kernel`, called on contiguous chunks of
-    the batch from a ``prange`` loop: no second copy of the physics. The caller checks the
-    actions' finiteness first (a chunk cannot undo its neighbours).
-    """
-    global _parallel_step
-    if _parallel_step is None:
-        import numba
-        from numba import njit, prange
+    if getattr(parallel, "_is_initialized", True):
+        return numba.get_num_threads()
+    return int(numba.config.NUMBA_NUM_THREADS)
 
-        from auv_follow_env.dynamics import step_kernel
 
-        @njit(cache=True, parallel=True)
-        def step_chunks(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, chunks):
-            n = state.shape[0]
-            for c in prange(chunks):
-                a = c * n // chunks
-                b = (c + 1) * n // chunks
-                if b > a:
-                    step_kernel(state[a:b], k[a:b], proc[a:b], queue[a:b], rs[a:b], p[a:b], cfg, obs[a:b],
-                                truth[a:b], err_hist[a:b], rew[a:b], term[a:b], action[3 * a:3 * b])
+def _sleeping_omp_threads() -> None:
+    """Let idle OpenMP worker threads sleep instead of spin (``OMP_WAIT_POLICY=PASSIVE``,
+    unless the variable is set already): between two steps the workers of numba's OpenMP
+    layer otherwise spin for CPU time that the stepping thread needs, and on a machine
+    shared with other processes a threaded step then ran up to 30x slower than a serial one
+    (measured here at load 7 on 2 cores). The cost is one wake-up (microseconds) per step.
+    Read when the OpenMP runtime loads, i.e. at the first threaded step of the process."""
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-        _parallel_step = (step_chunks, numba)
-    return _parallel_step
+
+
+
 def _is_seed(s: object) -> bool:
     return isinstance(s, (int, np.integer)) and not isinstance(s, (bool, np.bool_)) and s >= 0
 
@@ -131,17 +131,25 @@ class AUVFollowVectorEnv(VectorEnv):
     see :func:`~auv_follow_env.params.make_config`). ``render_mode`` must be ``None``.
     ``max_episode_steps`` is what ``gym.make_vec`` passes from the registration; it must
     equal ``episode_s / dt`` (pass it along with ``episode_s`` when you change the latter).
-    ``parallel=True`` (off by default) steps chunks of the batch on numba's threads; the
-    results are bit-identical, the speed-up at most the number of free cores; batches under
-    256 envs stay serial (thread wake-up would cost more than the physics). The first use
-    compiles a parallel wrapper.
+    ``parallel`` chooses how a step runs: ``None`` (default) steps the batch on numba's
+    threads when it has at least :data:`PARALLEL_MIN_ENVS` (256) envs and numba has more
+    than one thread, serially otherwise; ``True`` uses the threads whenever the batch splits
+    into at least two chunks of 64 envs; ``False`` never. Threaded steps are one parallel
+    region per step (:func:`~auv_follow_env.dynamics.step_kernel_parallel`: contiguous
+    slices of the batch in a ``prange`` loop, the same per-env code), so the results are
+    bit-identical either way; the speed-up is at most the number of free cores. The threaded
+    kernel is compiled on its first use and then cached on disk like the others;
+    ``NUMBA_NUM_THREADS`` sets the thread count. Choosing the threads sets
+    ``OMP_WAIT_POLICY=PASSIVE`` in the process environment unless it is set (idle OpenMP
+    workers sleep rather than spin: spinning workers slowed threaded steps many times over
+    on a shared machine).
     """
 
     metadata = {"render_modes": [], "render_fps": 20, "autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(self, num_envs: int = 1, scenario: str = "S4", disturbance: str | None = None,
                  render_mode: str | None = None, max_episode_steps: int | None = None,
-                 parallel: bool = False, *, version: str = "v0", tier: str | None = None,
+                 parallel: bool | None = None, *, version: str = "v0", tier: str | None = None,
                  **overrides: Any) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs={num_envs!r} is invalid: must be an integer >= 1")
@@ -166,15 +174,18 @@ class AUVFollowVectorEnv(VectorEnv):
 
         self._sim = BatchSim(self.config, self.num_envs)
         self._kernel, self._args = self._sim.step_call()
-        self.parallel = bool(parallel)
+        if parallel is not None and not isinstance(parallel, (bool, np.bool_)):
+            raise ValueError(f"parallel={parallel!r} is invalid: pass None (automatic), True or False")
         self._parallel = None
-        if self.parallel:
-            step_chunks, numba = _get_parallel_step()
-            # a few chunks per thread balance the load; below _MIN_CHUNK envs per chunk the
-            # threads' wake-up costs more than the physics, so small batches stay serial
-            chunks = min(4 * numba.get_num_threads(), self.num_envs // _MIN_CHUNK)
+        threads = _num_threads() if parallel is not False else 1
+        if threads > 1 and (parallel or self.num_envs >= PARALLEL_MIN_ENVS):
+            # a few chunks per thread balance the load when other processes share the cores
+            chunks = min(4 * threads, self.num_envs // _MIN_CHUNK)
             if chunks >= 2:
-                self._parallel = (step_chunks, chunks)
+                self._parallel = (dyn.step_kernel_parallel, chunks)
+                _sleeping_omp_threads()
+        #: whether steps run on numba's threads (the resolved ``parallel`` argument)
+        self.parallel = self._parallel is not None
         self._n_steps = n_steps
         self._dt = self.config.dt
         self._rngs: list[np.random.Generator | None] = [None] * self.num_envs
@@ -252,11 +263,7 @@ class AUVFollowVectorEnv(VectorEnv):
         flat = a.reshape(-1)
         sim = self._sim
         if self._parallel is not None:
-            bad = -1
-            if not np.isfinite(flat).all():
-                bad = int(np.flatnonzero(~np.isfinite(flat))[0]) // 3
-            else:
-                self._parallel[0](*self._args, flat, self._parallel[1])
+            bad = self._parallel[0](*self._args, flat, self._parallel[1])
         else:
             bad = self._kernel(*self._args, flat)
         if bad >= 0:

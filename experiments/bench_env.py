@@ -105,6 +105,7 @@ def main(argv: list[str] | None = None) -> str:
         space = gym.make(env_id).action_space
         actions[env_id] = rng.uniform(space.low, space.high, (args.steps, *space.shape)).astype(space.dtype)
 
+    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
     rates: dict[str, list[float]] = {e: [] for e in ENVS}
     episodes: dict[str, int] = {}
     for rep in range(args.repeats):
@@ -124,7 +125,8 @@ def main(argv: list[str] | None = None) -> str:
         "",
         f"`python experiments/bench_env.py --steps {args.steps} --repeats {args.repeats}`; "
         f"Python {platform.python_version()}, numpy {np.__version__}, gymnasium {gym.__version__}, "
-        f"numba {__import__('numba').__version__}, {platform.machine()}, {os.cpu_count()} CPUs.",
+        f"numba {__import__('numba').__version__}, {platform.machine()}, {os.cpu_count()} CPUs; load average "
+        f"(1, 5, 15 min) before the run {load}, after it {', '.join(f'{x:.2f}' for x in os.getloadavg())}.",
         "",
         "Through `gym.make` (Pendulum-v1: TimeLimit, OrderEnforcing, PassiveEnvChecker; AUVFollow: "
         "OrderEnforcing, PassiveEnvChecker - it truncates itself at episode_s), pre-sampled random",

@@ -255,3 +255,25 @@ def test_output_path_keeps_committed_results_for_default_runs_only(capsys):
     assert output_path(p.parse_args(["--steps", "5"]), p, committed) == Path("results/tmp/bench_x.md")
     assert "--steps" in capsys.readouterr().err
     assert output_path(p.parse_args(["--steps", "5", "--out", "mine.md"]), p, committed) == Path("mine.md")
+
+
+def test_bench_vector_smoke(tmp_path):
+    # tiny budget: every column, the profile, the op count and the policy loop run and are reported
+    from experiments import bench_vector
+
+    out = tmp_path / "bench_vector.md"
+    text = bench_vector.main(["--budget", "0.01", "--sizes", "1", "32", "--repeats", "1", "--max-sync-envs", "32",
+                              "--policy-episode-s", "0.5", "--out", str(out)])
+    assert out.read_text() == text
+    for needle in ("| 32 |", "fraction of the limit", "Profile of one batched step", "evaluate_batched with PROPOSED",
+                   "bare kernel:"):
+        assert needle in text
+
+
+def test_bench_vector_op_count_matches_the_kernel_structure():
+    from experiments.bench_vector import op_count
+
+    ops = op_count(2)
+    assert ops["kernel"]["libm"] == 28 and ops["step"]["libm"] == 30  # 20 tone values + 4 per substep; cached
+    assert ops["kernel"]["divisions"] < ops["kernel"]["flops"]
+    assert op_count(3)["kernel"]["flops"] > ops["kernel"]["flops"]

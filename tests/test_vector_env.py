@@ -120,9 +120,11 @@ def test_vector_entry_point_equals_sync_vector_env():
 
 
 def test_parallel_option_is_bit_identical():
-    n, steps = 300, 45  # >= 256 envs, or parallel=True stays serial
+    n, steps = 300, 45
     actions = _actions(steps, n, seed=5)
-    serial = _vec_rollout(_vec(n, TERMINATING), 2, actions)
+    plain = _vec(n, {**TERMINATING, "parallel": False})
+    assert plain.unwrapped._parallel is None and plain.unwrapped.parallel is False
+    serial = _vec_rollout(plain, 2, actions)
     threaded = _vec(n, {**TERMINATING, "parallel": True})
     assert threaded.unwrapped._parallel is not None
     for t, (a, b) in enumerate(zip(serial, _vec_rollout(threaded, 2, actions), strict=True)):
@@ -307,3 +309,61 @@ def test_bench_script_smoke(tmp_path):
     text = main(["--budget", "0.01", "--sizes", "1", "3", "--no-parallel", "--out", str(out)])
     assert out.read_text() == text
     assert "| 3 |" in text and "native / SyncVectorEnv" in text
+
+
+def test_parallel_is_chosen_automatically_and_overridable():
+    import numba
+
+    threads = numba.get_num_threads()
+    assert _vec(255, {}).unwrapped.parallel is False  # small batches stay serial
+    assert _vec(256, {}).unwrapped.parallel is (threads > 1)
+    assert _vec(4096, {"parallel": False}).unwrapped.parallel is False
+    assert _vec(128, {"parallel": True}).unwrapped.parallel is (threads > 1)  # two chunks of 64
+    assert _vec(100, {"parallel": True}).unwrapped.parallel is False  # cannot split
+    with pytest.raises(ValueError, match="parallel="):
+        _vec(8, {"parallel": "yes"})
+
+
+def test_parallel_kernel_rejects_non_finite_actions_without_changing_anything():
+    venv = _vec(300, {"parallel": True})
+    venv.reset(seed=0)
+    sim = venv.unwrapped._sim
+    before = [x.copy() for x in (sim.state, sim.k, sim.proc, sim.obs)]
+    a = np.zeros((300, 3), dtype=np.float32)
+    a[299, 1] = np.nan
+    with pytest.raises(ValueError, match=r"actions\[299\]"):
+        venv.step(a)
+    for x, y in zip(before, (sim.state, sim.k, sim.proc, sim.obs), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+_CACHE_PROBE = """
+import numpy as np, gymnasium as gym
+import auv_follow_env
+from auv_follow_env import dynamics as dyn
+venv = gym.make_vec("AUVFollow-S4-v0", num_envs=300, vectorization_mode="vector_entry_point", parallel=True)
+venv.reset(seed=0)
+venv.step(np.zeros((300, 3), dtype=np.float32))
+print(sum(dyn.step_kernel_parallel.stats.cache_hits.values()), len(dyn.step_kernel_parallel.stats.cache_misses))
+"""
+
+
+def test_parallel_kernel_is_cached_on_disk(tmp_path):
+    # issue 14 item 12: the threaded kernel is a module-level function, so its disk cache hits
+    # in a new process and no further cache files appear
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "NUMBA_NUM_THREADS": "2"}
+
+    def run() -> tuple[list[int], set[str]]:
+        out = subprocess.run([sys.executable, "-c", _CACHE_PROBE], capture_output=True, text=True, env=env,
+                             check=True)
+        files = {str(f.relative_to(tmp_path)) for f in tmp_path.rglob("*step_kernel_parallel*")}
+        return [int(x) for x in out.stdout.split()[-2:]], files
+
+    (hits1, _), files1 = run()
+    (hits2, misses2), files2 = run()
+    assert hits2 >= 1 and misses2 == 0
+    assert files1 and files2 == files1
