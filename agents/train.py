@@ -43,7 +43,9 @@ from agents.residual import (
 __all__ = ["ALGOS", "MODES", "TrainConfig", "train", "load_hyperparams", "load_agent", "Agent",
            "versions", "evaluate_agent", "HYPERPARAMS_DIR"]
 
-ALGOS: tuple[str, ...] = ("ppo", "sac", "td3")
+ALGOS: tuple[str, ...] = ("ppo", "sac", "td3", "recurrentppo")
+#: algorithms whose policy carries a recurrent state (sb3-contrib's RecurrentPPO, an LSTM policy)
+RECURRENT_ALGOS: tuple[str, ...] = ("recurrentppo",)
 MODES: tuple[str, ...] = ("residual", "scratch")
 VEC_KINDS = ("dummy", "native")
 HYPERPARAMS_DIR = Path(__file__).with_name("hyperparams")
@@ -54,6 +56,10 @@ def _algo_class(algo: str):
     from stable_baselines3 import PPO, SAC, TD3
 
     classes = {"ppo": PPO, "sac": SAC, "td3": TD3}
+    if algo in RECURRENT_ALGOS:
+        from sb3_contrib import RecurrentPPO
+
+        classes["recurrentppo"] = RecurrentPPO
     if algo not in classes:
         raise ValueError(f"algo={algo!r} is unknown: valid algorithms are {list(ALGOS)}")
     return classes[algo]
@@ -394,11 +400,34 @@ class Agent:
         return np.clip((obs - self._obs_rms.mean) / np.sqrt(self._obs_rms.var + self._eps),
                        -self._clip, self._clip).astype(np.float32)
 
+    @property
+    def recurrent(self) -> bool:
+        """True for an LSTM policy (RecurrentPPO): :meth:`predict` then keeps its state."""
+        return self.config["run"]["algo"] in RECURRENT_ALGOS
+
+    def reset(self) -> None:
+        """Forget the recurrent state: the next call starts every env afresh."""
+        self._lstm, self._lstm_n = None, None
+
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool = True) -> tuple[np.ndarray, Any]:
         obs = self.normalize(np.asarray(observation, dtype=np.float32))
-        action, _ = self.model.predict(obs, deterministic=deterministic)
-        return action, state
+        if not self.recurrent:
+            action, _ = self.model.predict(obs, deterministic=deterministic)
+            return action, state
+        # a recurrent policy keeps its LSTM state itself (callers such as evaluate_batched pass
+        # state=None on every step), restarted per env where episode_start is set
+        n = 1 if obs.ndim == 1 else obs.shape[0]
+        if getattr(self, "_lstm_n", None) != n:
+            self._lstm, self._lstm_n = None, n
+            start = np.ones(n, dtype=bool)
+        elif episode_start is None:
+            start = np.zeros(n, dtype=bool)
+        else:
+            start = np.asarray(episode_start, dtype=bool).reshape(n)
+        lstm = state if state is not None else getattr(self, "_lstm", None)
+        action, self._lstm = self.model.predict(obs, state=lstm, episode_start=start, deterministic=deterministic)
+        return action, (self._lstm if state is not None else state)
 
 
 def load_agent(path: str | Path, name: str | None = None) -> Agent:
