@@ -68,9 +68,18 @@ def _algo_class(algo: str):
 def check_env_id(env_id: str, *, allow_any: bool = False) -> None:
     """Raise ``ValueError`` unless ``env_id`` is a registered AUVFollow id (or any registered
     id when ``allow_any``)."""
-    if env_id in auv_follow_env.ENV_IDS or (allow_any and env_id in gym.registry):
+    valid = list(auv_follow_env.ENV_IDS) + list(getattr(auv_follow_env, "ENV_IDS_V1", ()))
+    if env_id in valid or (allow_any and env_id in gym.registry):
         return
-    raise ValueError(f"env_id={env_id!r} is unknown: valid ids are {list(auv_follow_env.ENV_IDS)}")
+    raise ValueError(f"env_id={env_id!r} is unknown: valid ids are {valid}")
+
+
+def check_tier_training_seeds(env_id: str, seeds: list[int]) -> None:
+    """On a v1 tier, refuse training/evaluation-callback seeds that could be test seeds
+    (``auv_follow_env.check_training_seeds``: every published test seed is above the limit)."""
+    check = getattr(auv_follow_env, "check_training_seeds", None)
+    if check is not None and env_id in getattr(auv_follow_env, "ENV_IDS_V1", ()):
+        check(seeds, name=f"training seeds of {env_id}")
 
 
 def _eval_zoo(value: Any) -> Any:
@@ -176,6 +185,7 @@ class TrainConfig:
                 raise ValueError(f"{name}={getattr(self, name)!r} is invalid: must be >= 0 (0 disables)")
         if self.eval_episodes <= 0:
             raise ValueError(f"eval_episodes={self.eval_episodes!r} is invalid: must be a positive integer")
+        check_tier_training_seeds(self.env_id, [self.seed + i for i in range(self.n_envs or 16)] + [self.eval_seed])
         if self.resume_from is not None and not Path(self.resume_from).is_file():
             raise FileNotFoundError(f"resume_from={self.resume_from!r}: no such model file")
 
