@@ -250,9 +250,10 @@ class PolicySpec:
 
 
 def _controllers() -> tuple[str, ...]:
-    from controllers import CONTROLLERS
+    """Every registered scripted controller (the paper's four and, where present, ours)."""
+    import controllers
 
-    return tuple(CONTROLLERS)
+    return tuple(getattr(controllers, "ALL_CONTROLLERS", controllers.CONTROLLERS))
 
 
 def _is_run(p: Path) -> bool:
