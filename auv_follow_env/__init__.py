@@ -5,21 +5,30 @@ The ids are registered without ``max_episode_steps``: the env truncates itself a
 ``gym.make`` can never be cut short by a registered TimeLimit that the env cannot see
 (Gymnasium 1.x hides it from the env).
 
-Importing this package registers ``AUVFollow-S1-v0`` ... ``AUVFollow-S4-v0`` (the paper's
-scenario presets) and ``AUVFollow-v0`` (``scenario=`` keyword); it does nothing else.
+Importing this package registers
+
+* ``AUVFollow-S1-v0`` ... ``AUVFollow-S4-v0`` (the paper's scenario presets, frozen) and
+  ``AUVFollow-v0`` (``scenario=`` keyword);
+* ``AUVFollow-Easy-v1``, ``-Medium-v1``, ``-Hard-v1`` and ``-Extreme-v1`` (the acoustic-link
+  tiers of :mod:`auv_follow_env.tiers`, each with published test seeds) and ``AUVFollow-v1``
+  (a scenario preset with the v1 link and observation; every link parameter a keyword);
+
+and does nothing else.
 """
 
 from gymnasium.envs.registration import register, registry
 
 from auv_follow_env.params import SCENARIOS, make_config, make_task_spec
+from auv_follow_env.tiers import TIERS, check_training_seeds
 
-__all__ = ["ENV_IDS", "make_config", "make_task_spec"]
+__all__ = ["ENV_IDS", "ENV_IDS_V1", "TIERS", "check_training_seeds", "make_config", "make_task_spec"]
 __version__ = "0.1.0"
 
 _ENTRY = "auv_follow_env.env:AUVFollowEnv"
 _VECTOR_ENTRY = "auv_follow_env.vector_env:AUVFollowVectorEnv"
 
 ENV_IDS: tuple[str, ...] = tuple(f"AUVFollow-{s}-v0" for s in SCENARIOS) + ("AUVFollow-v0",)
+ENV_IDS_V1: tuple[str, ...] = tuple(t.env_id for t in TIERS.values()) + ("AUVFollow-v1",)
 
 for _name in SCENARIOS:
     if f"AUVFollow-{_name}-v0" not in registry:
@@ -28,3 +37,10 @@ for _name in SCENARIOS:
 if "AUVFollow-v0" not in registry:
     register(id="AUVFollow-v0", entry_point=_ENTRY,
              vector_entry_point=_VECTOR_ENTRY)
+for _tier in TIERS.values():
+    if _tier.env_id not in registry:
+        register(id=_tier.env_id, entry_point=_ENTRY, vector_entry_point=_VECTOR_ENTRY,
+                 kwargs={"version": "v1", "tier": _tier.name})
+if "AUVFollow-v1" not in registry:
+    register(id="AUVFollow-v1", entry_point=_ENTRY, vector_entry_point=_VECTOR_ENTRY,
+             kwargs={"version": "v1"})

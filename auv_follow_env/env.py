@@ -10,10 +10,10 @@ import numpy as np
 from gymnasium import spaces
 
 from auv_follow_env import dynamics as dyn
-from auv_follow_env.layout import OBS_DIM
 from auv_follow_env.metrics import tracking_metrics
-from auv_follow_env.params import TaskSpec, make_config
+from auv_follow_env.params import TaskSpec
 from auv_follow_env.sim import BatchSim
+from auv_follow_env.tiers import make_env_config, tier_table_markdown
 
 __all__ = ["AUVFollowEnv", "check_action"]
 
@@ -138,24 +138,72 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
     ``init_offset_m``, ``max_distance_m``, ``effort_weight``, ``p_d``, ``psi_d``,
     ``steady_start_s``; see :class:`~auv_follow_env.params.EnvConfig`.
 
+    ## v1: the acoustic link (``AUVFollow-Easy-v1`` ... ``-Extreme-v1``, ``AUVFollow-v1``)
+
+    The same plant, action, reward and episode end; what changes is what the follower hears
+    and how the target moves (all in the one kernel, per env, from the env's own generator):
+
+    * **Packets.** The target's state is measured at send times (period ``update_period_s``,
+      each interval +- ``period_jitter_s``, on the control grid) and arrives after its own
+      latency: ``latency_model`` "constant" (``latency_s``), "uniform" (``latency_s`` +-
+      ``latency_spread_s``) or "gauss_markov" (mean ``latency_s``, std ``latency_spread_s``,
+      correlation time ``latency_corr_s``; clipped at 0). Packets are lost i.i.d. with
+      ``loss_prob`` and in bursts (Gilbert-Elliott: good -> bad with ``burst_p_good_bad`` per
+      packet, bad -> good with ``burst_p_bad_good``, loss ``burst_loss_bad`` while bad). A packet
+      arriving after a newer one is discarded, so the observation never goes back in time.
+    * **Fix noise.** Gaussian position noise with sigma ``fix_sigma_m + fix_sigma_per_m * range``
+      (as a USBL's), heading, velocity and yaw-rate noise.
+    * **Target.** u_t = clip(v_bar (1 + a_u sin) + X_u, min, max), r_t = clip(a_r sin + X_r,
+      +-max), with X_u, X_r Ornstein-Uhlenbeck processes (std ``target_speed_std`` /
+      ``target_yaw_rate_std``, correlation times ``target_*_corr_s``), sampled exactly at the
+      control rate and held over each step. The tiers set the tones to 0: no period to lock on.
+    * **Current and disturbances.** A Gauss-Markov current (mean speed ``current_speed``, std
+      ``current_speed_std``, correlation ``current_corr_s``, direction random walk
+      ``current_direction_drift``) on top of the level's tones (``current_x`` / ``current_y``
+      replace the level's ranges: a custom current); coloured disturbances
+      ``disturbance_noise_*`` (per unit mass, correlation ``disturbance_corr_s``).
+    * **Thrusters.** First-order lag ``thruster_tc_s`` and rate limit ``thruster_rate``
+      (fraction of the force limit per second) between the action and the applied force.
+    * **Start.** The target and the link run for ``warmup_s`` before t = 0; the follower starts
+      behind the newest packet received by then (behind the true target if none).
+
+    Observation: ``Box(-inf, inf, (20,), float32)``, fields 0-15 as above with "delayed target"
+    meaning the newest received packet, then
+
+    | Num | Name | Unit | Meaning |
+    |-----|------|------|---------|
+    | 16 | packet_age | s | now minus the packet's measurement time |
+    | 17 | since_arrival | s | now minus the packet's arrival time |
+    | 18 | new_packet | - | 1 on the step a newer packet arrived |
+    | 19 | has_packet | - | 0 until the first packet (fields 5-13, 16-17 are 0 then) |
+
+    Info: at reset ``condition`` (the drawn settings of this episode, a dict); at the end
+    ``link_stats`` (packets sent, lost, arrived, discarded, overflow since t = 0). Every v1
+    field is a ``gym.make`` keyword: a number fixes it, a ``(min, max)`` pair draws it per reset.
+    v0's constant delay is the setting ``update_period_s = dt``, ``latency_s = tau``,
+    ``warmup_s = tau``, no loss, no noise, no processes (``AUVFollow-v1`` with those keywords
+    reproduces ``AUVFollow-v0``'s plant trajectory).
+
     ## Version History
 
-    * v0: initial release.
+    * v1: the acoustic link, random target, current and thrusters; four tiers with test seeds.
+    * v0: initial release (the paper's task; frozen).
     """
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 20}
 
     def __init__(self, scenario: str = "S4", disturbance: str | None = None,
-                 render_mode: str | None = None, **overrides: Any) -> None:
+                 render_mode: str | None = None, *, version: str = "v0", tier: str | None = None,
+                 **overrides: Any) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r} is unknown: valid modes are "
                              f"{self.metadata['render_modes']} or None")
-        self.config = make_config(scenario, disturbance, **overrides)
+        self.config = make_env_config(scenario, disturbance, version=version, tier=tier, **overrides)
         self.task_spec: TaskSpec = self.config.task_spec()
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.config.dt))}
         self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
-        self.observation_space = spaces.Box(-np.inf, np.inf, (OBS_DIM,), np.float32)
+        self.observation_space = spaces.Box(-np.inf, np.inf, (self.task_spec.obs_dim,), np.float32)
         self._sim = BatchSim(self.config, 1)
         self._kernel, self._args = self._sim.step_call()
         self._n_steps = self.config.n_steps
@@ -173,6 +221,8 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         truth = self._sim.truth[0].copy()
         info = {"tracking_error": float(truth[12]), "time": 0.0, "true_target": truth[3:9],
                 "true_reference": truth[9:12], "follower_pose": truth[0:3]}
+        if self._sim.v1:
+            info["condition"] = dict(self._sim.conditions[0])
         if self.render_mode == "human":
             self.render()
         return self._sim.obs[0].copy(), info
@@ -194,6 +244,8 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
                 "follower_pose": truth[0:3]}
         if terminated or k == self._n_steps:
             info["episode_metrics"] = tracking_metrics(*sim.errors(0), self.config.steady_start_s)
+            if sim.v1:
+                info["link_stats"] = sim.link_stats(0)
         if self.render_mode is not None:
             self._record_trail()
             if self.render_mode == "human":
@@ -224,3 +276,19 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+def _v1_tables() -> str:
+    from auv_follow_env.params import CONDITION_FIELDS
+
+    rows = ["", "    ## v1 parameters", "", "    | keyword | default | range | unit | meaning |",
+            "    |---|---|---|---|---|"]
+    for f in CONDITION_FIELDS:
+        d = "scenario" if f.default is None else f"{f.default:g}"
+        rng = f"{'(' if f.lo_open else '['}{f.lo:g}, {f.hi:g}]"
+        rows.append(f"    | {f.name} | {d} | {rng} | {f.unit} | {f.doc} |")
+    rows += ["", "    ## Tiers", ""] + ["    " + line if line else "" for line in tier_table_markdown().splitlines()]
+    return "\n".join(rows) + "\n"
+
+
+AUVFollowEnv.__doc__ = (AUVFollowEnv.__doc__ or "") + _v1_tables()

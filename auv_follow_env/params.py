@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from types import MappingProxyType
+
+import numpy as np
 
 __all__ = [
     "VehicleParams",
@@ -36,18 +38,46 @@ def _require(cond: bool, name: str, value: object, allowed: str) -> None:
         raise ValueError(f"{name}={value!r} is invalid: must be {allowed}")
 
 
+def _is_real(v: object) -> bool:
+    """A real number: int, float or a numpy integer/floating scalar, not a bool."""
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def as_real(name: str, v: object) -> float:
+    """``v`` as a float, or a ValueError naming ``name`` (strings, bools, None are refused)."""
+    if not _is_real(v):
+        raise ValueError(f"{name}={v!r} is invalid: must be a real number (got {type(v).__name__})")
+    return float(v)  # type: ignore[arg-type]
+
+
+def as_real_tuple(name: str, v: object, n: int) -> tuple[float, ...]:
+    """``v`` (tuple, list or 1-D ndarray of ``n`` real numbers) as a tuple of floats."""
+    if isinstance(v, np.ndarray):
+        v = v.tolist() if v.ndim == 1 else v
+    if isinstance(v, (str, bytes, dict, set)) or not isinstance(v, (tuple, list)) or len(v) != n \
+            or not all(_is_real(x) for x in v):
+        raise ValueError(f"{name}={v!r} is invalid: must be a sequence (tuple, list or array) of {n} "
+                         f"real numbers")
+    return tuple(float(x) for x in v)
+
+
+def _in_range(name: str, v: float, lo: float, hi: float, unit: str = "", lo_open: bool = False) -> None:
+    ok = math.isfinite(v) and (v > lo if lo_open else v >= lo) and v <= hi
+    if not ok:
+        raise ValueError(f"{name}={v!r} is invalid: must be a finite number in "
+                         f"{'(' if lo_open else '['}{lo:g}, {hi:g}]{' ' + unit if unit else ''}")
+
+
 def _finite_positive(obj: object, *names: str) -> None:
     for n in names:
         v = getattr(obj, n)
-        _require(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, n, v,
-                 "a finite number > 0")
+        _require(_is_real(v) and math.isfinite(v) and v > 0, n, v, "a finite number > 0")
 
 
 def _finite_nonneg(obj: object, *names: str) -> None:
     for n in names:
         v = getattr(obj, n)
-        _require(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0, n, v,
-                 "a finite number >= 0")
+        _require(_is_real(v) and math.isfinite(v) and v >= 0, n, v, "a finite number >= 0")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -175,16 +205,37 @@ SCENARIOS: Mapping[str, Scenario] = MappingProxyType({
 OFFSET_P_D: tuple[float, float] = (-0.65, 0.12)
 
 
+#: bounds enforced on the task's numbers (ours): they keep the RK4 stable, the arrays small
+#: and the metrics defined; a value outside gets a ValueError naming the field and the range
+BOUNDS: Mapping[str, tuple[float, float, str]] = MappingProxyType({
+    "dt": (1e-3, 0.2, "s"),
+    "episode_s": (0.0, 3600.0, "s"),
+    "delay_s": (0.0, 30.0, "s"),
+    "steady_start_s": (0.0, 3600.0, "s"),
+    "mismatch": (-0.9, 10.0, "-"),
+    "init_offset_m": (0.0, 100.0, "m"),
+    "max_distance_m": (0.0, 1e4, "m"),
+    "effort_weight": (0.0, 1e3, "-"),
+    "psi_d": (-2 * math.pi, 2 * math.pi, "rad"),
+})
+MAX_SUBSTEPS = 100  #: physics_substeps in [1, MAX_SUBSTEPS]
+MAX_STEPS = 200_000  #: episode_s / dt at most this many control steps
+MAX_FORCE = 1e5  #: force limits in (0, MAX_FORCE] [N, N, N m]
+MAX_OFFSET = 100.0  #: |p_d| components at most this [m]
+
+
 @dataclass(frozen=True, kw_only=True)
 class EnvConfig:
     """Everything that defines one AUVFollow task. Built by :func:`make_config`.
 
-    Attributes are documented with units; values marked "ours" are our choices.
+    Attributes are documented with units; values marked "ours" are our choices. Every
+    number is bounded (:data:`BOUNDS`); ``condition`` is None for the v0 ids and the
+    acoustic-link :class:`Condition` (with ``ranges`` drawn per reset) for the v1 ids.
     """
 
     scenario: Scenario
     disturbance: DisturbanceLevel
-    delay_s: float  #: target-state delay tau [s]; a multiple of ``dt``
+    delay_s: float  #: target-state delay tau [s]; a multiple of ``dt`` (v0)
     mismatch: float  #: true damping = nominal * (1 + mismatch) [-]; > -1
     nominal: VehicleParams = NOMINAL_VEHICLE  #: what controllers are told
     dt: float = 0.05  #: control step [s] (ours: 20 Hz)
@@ -204,27 +255,47 @@ class EnvConfig:
     """Terminate when the follower is further than this from the true reference [m] (ours)."""
     effort_weight: float = 0.0
     """Reward = -error - effort_weight * mean(action^2) (ours: 0 by default)."""
+    condition: Condition | None = None
+    """v1 only: the acoustic link, target, current and thruster settings (None: v0)."""
+    ranges: Mapping[str, tuple[float, float]] = field(default_factory=lambda: MappingProxyType({}))
+    """v1 only: condition fields drawn uniformly from (min, max) at every reset (a tier)."""
+    tier: str | None = None  #: v1 only: the tier's name, if any
 
     def __post_init__(self) -> None:
-        _finite_positive(self, "dt", "episode_s", "init_offset_m", "max_distance_m")
-        _finite_nonneg(self, "delay_s", "steady_start_s", "effort_weight", "init_offset_m")
-        _require(isinstance(self.physics_substeps, int) and not isinstance(self.physics_substeps, bool)
-                 and self.physics_substeps >= 1, "physics_substeps", self.physics_substeps,
-                 "an integer >= 1")
+        for name, (lo, hi, unit) in BOUNDS.items():
+            v = getattr(self, name)
+            if not _is_real(v):
+                raise ValueError(f"{name}={v!r} is invalid: must be a real number")
+            _in_range(name, float(v), lo, hi, unit, lo_open=name in ("dt", "episode_s", "max_distance_m"))
+        _require(isinstance(self.physics_substeps, (int, np.integer)) and not isinstance(self.physics_substeps, bool)
+                 and 1 <= self.physics_substeps <= MAX_SUBSTEPS, "physics_substeps", self.physics_substeps,
+                 f"an integer in [1, {MAX_SUBSTEPS}]")
         steps = self.delay_s / self.dt
         _require(abs(steps - round(steps)) < 1e-9 * max(1.0, steps), "delay_s", self.delay_s,
                  f"a multiple of dt={self.dt} s (the delay line holds whole control steps)")
         n = self.episode_s / self.dt
-        _require(abs(n - round(n)) < 1e-9 * max(1.0, n) and round(n) >= 1, "episode_s",
-                 self.episode_s, f"a positive multiple of dt={self.dt} s")
-        _require(isinstance(self.mismatch, (int, float)) and math.isfinite(self.mismatch)
-                 and self.mismatch > -1, "mismatch", self.mismatch, "a finite number > -1")
+        _require(abs(n - round(n)) < 1e-9 * max(1.0, n) and 1 <= round(n) <= MAX_STEPS, "episode_s",
+                 self.episode_s, f"a positive multiple of dt={self.dt} s with at most {MAX_STEPS} steps")
+        _require(self.steady_start_s < self.episode_s, "steady_start_s", self.steady_start_s,
+                 f"less than episode_s={self.episode_s} s (else the steady-state window is empty)")
         _require(len(self.force_limits) == 3 and all(
-            isinstance(f, (int, float)) and math.isfinite(f) and f > 0 for f in self.force_limits),
-            "force_limits", self.force_limits, "three finite numbers > 0")
-        _require(len(self.p_d) == 2 and all(math.isfinite(v) for v in self.p_d), "p_d", self.p_d,
-                 "two finite numbers [m]")
-        _require(math.isfinite(self.psi_d), "psi_d", self.psi_d, "a finite angle [rad]")
+            _is_real(f) and math.isfinite(f) and 0 < f <= MAX_FORCE for f in self.force_limits),
+            "force_limits", self.force_limits, f"three finite numbers in (0, {MAX_FORCE:g}] [N, N, N m]")
+        _require(len(self.p_d) == 2 and all(_is_real(v) and abs(v) <= MAX_OFFSET for v in self.p_d), "p_d",
+                 self.p_d, f"two finite numbers in [-{MAX_OFFSET:g}, {MAX_OFFSET:g}] m")
+        # RK4 stability: h * (fastest damping rate) well inside RK4's real-axis limit 2.78
+        worst = 1.0 + max(self.mismatch, self.ranges.get("mismatch", (0.0, self.mismatch))[1])
+        v = self.nominal
+        rate = worst * max(v.X_u / v.m, v.Y_v / v.m, v.N_r / v.I_z)
+        h = self.dt / self.physics_substeps
+        _require(h * rate <= 1.0, "physics_substeps", self.physics_substeps,
+                 f"large enough that dt / physics_substeps * (fastest damping rate {rate:.3g} 1/s) <= 1 "
+                 f"(now {h * rate:.3g}); lower dt={self.dt} or the mismatch, or raise physics_substeps")
+
+    @property
+    def version(self) -> str:
+        """"v0" (the paper's constant delay, 16 fields) or "v1" (the acoustic link, 20 fields)."""
+        return "v0" if self.condition is None else "v1"
 
     @property
     def delay_steps(self) -> int:
@@ -241,12 +312,23 @@ class EnvConfig:
         """The simulated plant: nominal inertia, damping scaled by (1 + mismatch)."""
         return self.nominal.with_mismatch(self.mismatch)
 
+    @property
+    def warmup_steps(self) -> int:
+        """Control steps simulated before t = 0 to fill the link (v0: tau / dt)."""
+        if self.condition is None:
+            return self.delay_steps
+        return int(math.ceil(self.condition.warmup_s / self.dt - 1e-9))
+
     def task_spec(self) -> "TaskSpec":
+        c = self.condition
+        delay = self.delay_s if c is None else c.latency_s
+        if c is not None and "latency_s" in self.ranges:
+            delay = 0.5 * sum(self.ranges["latency_s"])
         return TaskSpec(
             scenario=self.scenario.name, disturbance=self.disturbance.name, dt=self.dt,
-            delay_s=self.delay_s, delay_steps=self.delay_steps, p_d=self.p_d, psi_d=self.psi_d,
+            delay_s=delay, delay_steps=int(round(delay / self.dt)), p_d=self.p_d, psi_d=self.psi_d,
             nominal=self.nominal, force_limits=self.force_limits, episode_s=self.episode_s,
-            n_steps=self.n_steps, steady_start_s=self.steady_start_s)
+            n_steps=self.n_steps, steady_start_s=self.steady_start_s, layout=self.version, tier=self.tier)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -256,12 +338,14 @@ class TaskSpec:
     A real follower knows these (its delay, its desired offset, its own nominal model, its
     control rate); it does not know the true damping, the current's future or the target's
     present state. Exposed as ``env.unwrapped.task_spec`` and by :func:`make_task_spec`.
+    On the v1 ids ``delay_s`` is only the nominal latency (the middle of the tier's range):
+    the observed ``packet_age`` says how old each packet really is.
     """
 
     scenario: str
     disturbance: str
     dt: float  #: control step [s]
-    delay_s: float  #: tau [s]
+    delay_s: float  #: tau [s] (v1: nominal latency)
     delay_steps: int  #: tau / dt
     p_d: tuple[float, float]  #: reference offset in the target body frame [m]
     psi_d: float  #: heading offset [rad]
@@ -270,57 +354,306 @@ class TaskSpec:
     episode_s: float  #: episode length [s]
     n_steps: int  #: control steps per episode
     steady_start_s: float  #: start of the steady-state metric window [s]
+    layout: str = "v0"  #: observation layout: "v0" (16 fields) or "v1" (20 fields)
+    tier: str | None = None  #: v1 tier name, if any
+
+    @property
+    def obs_dim(self) -> int:
+        """Width of the observations of this task (16 for v0, 20 for v1)."""
+        return 16 if self.layout == "v0" else 20
 
 
-#: keyword overrides accepted by the environments (and by make_config)
+# --- v1: the acoustic link, an unpredictable target, a wandering current --------------------
+
+LATENCY_MODELS: tuple[str, ...] = ("constant", "uniform", "gauss_markov")
+
+
+@dataclass(frozen=True)
+class ConditionField:
+    """One v1 condition parameter: default, allowed closed range, unit and meaning."""
+
+    name: str
+    default: float | None
+    lo: float
+    hi: float
+    unit: str
+    doc: str
+    lo_open: bool = False
+
+
+#: the scalar v1 parameters, in documentation order (every one overridable through gym.make,
+#: and every one can be drawn per reset by a tier)
+CONDITION_FIELDS: tuple[ConditionField, ...] = (
+    # link: packets, latency, loss
+    ConditionField("update_period_s", None, 0.0, 60.0, "s",
+                   "send period of the target's state (None: every control step)", lo_open=True),
+    ConditionField("period_jitter_s", 0.0, 0.0, 60.0, "s",
+                   "each send interval is period + U(-jitter, +jitter) (jitter < period)"),
+    ConditionField("latency_s", None, 0.0, 30.0, "s", "mean latency of a packet (None: delay_s)"),
+    ConditionField("latency_spread_s", 0.0, 0.0, 30.0, "s",
+                   "uniform: half-width; gauss_markov: standard deviation (latency clipped at 0)"),
+    ConditionField("latency_corr_s", 10.0, 0.0, 1e4, "s", "correlation time of the Gauss-Markov latency",
+                   lo_open=True),
+    ConditionField("loss_prob", 0.0, 0.0, 1.0, "-", "i.i.d. probability that a packet is lost"),
+    ConditionField("burst_p_good_bad", 0.0, 0.0, 1.0, "-",
+                   "Gilbert-Elliott: probability per packet of going from the good to the bad state "
+                   "(0: no bursts)"),
+    ConditionField("burst_p_bad_good", 1.0, 0.0, 1.0, "-",
+                   "Gilbert-Elliott: probability per packet of leaving the bad state (mean bad run "
+                   "1 / p packets)", lo_open=True),
+    ConditionField("burst_loss_bad", 1.0, 0.0, 1.0, "-", "loss probability in the bad state"),
+    # fix noise
+    ConditionField("fix_sigma_m", 0.0, 0.0, 100.0, "m", "position-fix noise sigma at zero range"),
+    ConditionField("fix_sigma_per_m", 0.0, 0.0, 1.0, "m/m",
+                   "growth of the position sigma with range (sigma = fix_sigma_m + k * range, as a USBL)"),
+    ConditionField("heading_sigma_rad", 0.0, 0.0, math.pi, "rad", "heading-fix noise sigma"),
+    ConditionField("velocity_sigma_mps", 0.0, 0.0, 10.0, "m/s", "noise sigma on the reported u_t and v_t"),
+    ConditionField("yaw_rate_sigma_radps", 0.0, 0.0, 10.0, "rad/s", "noise sigma on the reported r_t"),
+    # target
+    ConditionField("target_speed", None, 0.0, 5.0, "m/s", "mean surge speed v_bar (None: the scenario's)"),
+    ConditionField("target_surge_amp", None, 0.0, 0.99, "-", "relative surge tone amplitude a_u "
+                   "(None: the scenario's)"),
+    ConditionField("target_yaw_rate_amp", None, 0.0, 1.0, "rad/s", "yaw-rate tone amplitude a_r "
+                   "(None: the scenario's)"),
+    ConditionField("target_speed_std", 0.0, 0.0, 2.0, "m/s",
+                   "std of the OU deviation of the target's surge speed"),
+    ConditionField("target_speed_corr_s", 20.0, 0.0, 1e4, "s", "its correlation time", lo_open=True),
+    ConditionField("target_yaw_rate_std", 0.0, 0.0, 1.0, "rad/s", "std of the OU deviation of the yaw rate"),
+    ConditionField("target_yaw_rate_corr_s", 10.0, 0.0, 1e4, "s", "its correlation time", lo_open=True),
+    ConditionField("target_speed_min", 0.0, 0.0, 5.0, "m/s", "surge speed is clipped to [min, max]"),
+    ConditionField("target_speed_max", 2.0, 0.0, 5.0, "m/s", "upper surge-speed bound", lo_open=True),
+    ConditionField("target_yaw_rate_max", 0.5, 0.0, 5.0, "rad/s", "|r_t| is clipped to this", lo_open=True),
+    # current
+    ConditionField("current_speed", 0.0, 0.0, 3.0, "m/s",
+                   "mean speed of the Gauss-Markov current (added to the level's tones)"),
+    ConditionField("current_speed_std", 0.0, 0.0, 3.0, "m/s", "std of its speed (speed clipped at 0)"),
+    ConditionField("current_corr_s", 60.0, 0.0, 1e5, "s", "correlation time of its speed", lo_open=True),
+    ConditionField("current_direction_rad", None, -2 * math.pi, 2 * math.pi, "rad",
+                   "its initial direction (inertial; None: drawn uniformly)"),
+    ConditionField("current_direction_drift", 0.0, 0.0, 1.0, "rad/sqrt(s)",
+                   "random-walk intensity of its direction"),
+    # disturbances, thrusters, start
+    ConditionField("disturbance_noise_u", 0.0, 0.0, 10.0, "m/s^2",
+                   "std of a coloured (Gauss-Markov) surge disturbance per unit mass"),
+    ConditionField("disturbance_noise_v", 0.0, 0.0, 10.0, "m/s^2", "the same in sway"),
+    ConditionField("disturbance_noise_r", 0.0, 0.0, 10.0, "rad/s^2", "the same in yaw, per unit inertia"),
+    ConditionField("disturbance_corr_s", 5.0, 0.0, 1e4, "s", "their correlation time", lo_open=True),
+    ConditionField("thruster_tc_s", 0.0, 0.0, 10.0, "s", "first-order thruster lag time constant (0: none)"),
+    ConditionField("thruster_rate", math.inf, 0.0, math.inf, "1/s",
+                   "thruster rate limit, fraction of the force limit per second (inf: none)", lo_open=True),
+    ConditionField("warmup_s", None, 0.0, 120.0, "s",
+                   "time the target and link run before t = 0 (None: latency + 3 spread + 2 periods)"),
+)
+CONDITION_INDEX = MappingProxyType({f.name: f for f in CONDITION_FIELDS})
+#: v1 fields that are not numbers
+CONDITION_CHOICES = MappingProxyType({"latency_model": LATENCY_MODELS})
+#: v1 overrides taking (min, max) [m/s]: a custom tone current replacing the level's range
+CURRENT_RANGE_FIELDS: tuple[str, ...] = ("current_x", "current_y")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Condition:
+    """The v1 settings of one episode: the link, the target's random manoeuvres, the current,
+    extra disturbances and the thrusters. Every field is a plain number with a documented
+    unit and range (:data:`CONDITION_FIELDS`); ``latency_model`` is one of
+    :data:`LATENCY_MODELS`. The defaults are v0's behaviour (a packet every step, constant
+    latency tau, no loss, no noise, no random processes). Built by :func:`make_config`,
+    which fills the ``None`` defaults from the scenario.
+    """
+
+    update_period_s: float
+    period_jitter_s: float = 0.0
+    latency_model: str = "constant"
+    latency_s: float = 0.0
+    latency_spread_s: float = 0.0
+    latency_corr_s: float = 10.0
+    loss_prob: float = 0.0
+    burst_p_good_bad: float = 0.0
+    burst_p_bad_good: float = 1.0
+    burst_loss_bad: float = 1.0
+    fix_sigma_m: float = 0.0
+    fix_sigma_per_m: float = 0.0
+    heading_sigma_rad: float = 0.0
+    velocity_sigma_mps: float = 0.0
+    yaw_rate_sigma_radps: float = 0.0
+    target_speed: float = 0.5
+    target_surge_amp: float = 0.0
+    target_yaw_rate_amp: float = 0.0
+    target_speed_std: float = 0.0
+    target_speed_corr_s: float = 20.0
+    target_yaw_rate_std: float = 0.0
+    target_yaw_rate_corr_s: float = 10.0
+    target_speed_min: float = 0.0
+    target_speed_max: float = 2.0
+    target_yaw_rate_max: float = 0.5
+    current_speed: float = 0.0
+    current_speed_std: float = 0.0
+    current_corr_s: float = 60.0
+    current_direction_rad: float | None = None
+    current_direction_drift: float = 0.0
+    disturbance_noise_u: float = 0.0
+    disturbance_noise_v: float = 0.0
+    disturbance_noise_r: float = 0.0
+    disturbance_corr_s: float = 5.0
+    thruster_tc_s: float = 0.0
+    thruster_rate: float = math.inf
+    warmup_s: float = 0.0
+    current_x: tuple[float, float] | None = None  #: custom tone current x range (min, max) [m/s]
+    current_y: tuple[float, float] | None = None  #: custom tone current y range (min, max) [m/s]
+
+    def __post_init__(self) -> None:
+        for f in CONDITION_FIELDS:
+            v = getattr(self, f.name)
+            if v is None and f.name == "current_direction_rad":
+                continue
+            if not _is_real(v):
+                raise ValueError(f"{f.name}={v!r} is invalid: must be a real number [{f.unit}]")
+            v = float(v)
+            if f.hi == math.inf:
+                _require(v > f.lo if f.lo_open else v >= f.lo, f.name, v, f"a number > {f.lo:g} [{f.unit}] or inf")
+            else:
+                _in_range(f.name, v, f.lo, f.hi, f.unit, f.lo_open)
+        _require(self.latency_model in LATENCY_MODELS, "latency_model", self.latency_model,
+                 f"one of {list(LATENCY_MODELS)}")
+        _require(self.period_jitter_s < self.update_period_s, "period_jitter_s", self.period_jitter_s,
+                 f"less than update_period_s={self.update_period_s} s (sends must stay in order)")
+        _require(self.latency_model != "uniform" or self.latency_spread_s <= self.latency_s, "latency_spread_s",
+                 self.latency_spread_s, f"<= latency_s={self.latency_s} s for the uniform model (latency >= 0)")
+        _require(self.target_speed_min <= self.target_speed_max, "target_speed_min", self.target_speed_min,
+                 f"<= target_speed_max={self.target_speed_max} m/s")
+        for n in CURRENT_RANGE_FIELDS:
+            r = getattr(self, n)
+            if r is not None:
+                _require(len(r) == 2 and all(_is_real(x) and abs(x) <= 3.0 for x in r) and r[0] <= r[1], n, r,
+                         "(min, max) with min <= max, each in [-3, 3] m/s")
+
+    def as_dict(self) -> dict[str, object]:
+        """All fields by name (what ``info["condition"]`` reports at reset)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+#: keyword overrides accepted by the v0 environments (and by make_config)
 OVERRIDES: tuple[str, ...] = tuple(
-    f.name for f in fields(EnvConfig) if f.name not in ("scenario", "disturbance", "nominal"))
+    f.name for f in fields(EnvConfig)
+    if f.name not in ("scenario", "disturbance", "nominal", "condition", "ranges", "tier"))
+#: keyword overrides accepted by the v1 environments, besides :data:`OVERRIDES`
+OVERRIDES_V1: tuple[str, ...] = (tuple(f.name for f in CONDITION_FIELDS) + tuple(CONDITION_CHOICES)
+                                 + CURRENT_RANGE_FIELDS)
+#: v1 condition fields that a tier may draw per reset (scalars)
+RANGEABLE: tuple[str, ...] = tuple(f.name for f in CONDITION_FIELDS if f.name != "warmup_s") + ("mismatch",)
 
 
-def make_config(scenario: str = "S4", disturbance: str | None = None, **overrides: object) -> EnvConfig:
+def _parse_overrides(overrides: Mapping[str, object], allowed: tuple[str, ...], version: str) -> dict:
+    unknown = sorted(set(overrides) - set(allowed))
+    if unknown:
+        extra = ""
+        if version == "v0" and set(unknown) & set(OVERRIDES_V1):
+            extra = " (the acoustic-link parameters exist only on the v1 ids, e.g. AUVFollow-Hard-v1 or AUVFollow-v1)"
+        raise ValueError(f"unknown override(s) {unknown}{extra}: valid overrides are {list(allowed)}")
+    kw: dict = {}
+    for k, v in overrides.items():
+        if v is None:
+            continue
+        if k in ("force_limits", "p_d"):
+            v = as_real_tuple(k, v, 3 if k == "force_limits" else 2)
+        elif k in CURRENT_RANGE_FIELDS:
+            v = as_real_tuple(k, v, 2)
+        elif k == "physics_substeps":
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+                raise ValueError(f"physics_substeps={v!r} is invalid: must be an integer in [1, {MAX_SUBSTEPS}]")
+            v = int(v)
+        elif k in CONDITION_CHOICES:
+            if v not in CONDITION_CHOICES[k]:
+                raise ValueError(f"{k}={v!r} is invalid: must be one of {list(CONDITION_CHOICES[k])}")
+        elif version == "v1" and k in RANGEABLE and isinstance(v, (tuple, list, np.ndarray)):
+            lo, hi = as_real_tuple(k, v, 2)
+            _require(lo <= hi, k, v, "a number or a (min, max) range with min <= max, drawn at every reset")
+            v = (lo, hi)
+        else:
+            v = as_real(k, v)
+        kw[k] = v
+    return kw
+
+
+def _condition_defaults(sc: Scenario, dt: float, delay_s: float) -> dict[str, float]:
+    return {"update_period_s": dt, "latency_s": delay_s, "target_speed": sc.target.speed,
+            "target_surge_amp": sc.target.surge_amp, "target_yaw_rate_amp": sc.target.yaw_rate_amp}
+
+
+def make_config(scenario: str = "S4", disturbance: str | None = None, *, version: str = "v0",
+                ranges: Mapping[str, tuple[float, float]] | None = None, tier: str | None = None,
+                **overrides: object) -> EnvConfig:
     """Build a validated :class:`EnvConfig` from a preset and keyword overrides.
 
     Args:
         scenario: "S1".."S4" (Table 2).
         disturbance: "L0".."L2" (Table 3); ``None`` takes the scenario's level.
+        version: "v0" (the paper's task) or "v1" (the acoustic link; accepts
+            :data:`OVERRIDES_V1` too, and any rangeable field as a ``(min, max)`` range drawn
+            at every reset).
+        ranges: v1 only: default per-reset ranges (a tier's); overrides replace them.
+        tier: v1 only: the tier's name (recorded in the task spec).
         **overrides: any of :data:`OVERRIDES` (``delay_s``, ``episode_s``, ``dt``,
             ``physics_substeps``, ``mismatch``, ``force_limits``, ``init_offset_m``,
-            ``max_distance_m``, ``effort_weight``, ``p_d``, ``psi_d``, ``steady_start_s``).
+            ``max_distance_m``, ``effort_weight``, ``p_d``, ``psi_d``, ``steady_start_s``),
+            and on v1 :data:`OVERRIDES_V1`. Numbers may be Python or numpy scalars; tuples
+            may be tuples, lists or arrays.
 
     Raises:
-        ValueError: unknown scenario, level or override, or a non-physical value.
+        ValueError: unknown scenario, level or override, or a value out of its range.
     """
     if not isinstance(scenario, str) or scenario not in SCENARIOS:
         raise ValueError(f"scenario={scenario!r} is unknown: valid scenarios are {sorted(SCENARIOS)}")
+    if version not in ("v0", "v1"):
+        raise ValueError(f"version={version!r} is unknown: must be 'v0' or 'v1'")
     sc = SCENARIOS[scenario]
     level = sc.disturbance if disturbance is None else disturbance
     if not isinstance(level, str) or level not in DISTURBANCE_LEVELS:
         raise ValueError(f"disturbance={disturbance!r} is unknown: valid levels are "
                          f"{sorted(DISTURBANCE_LEVELS)} (or None for the scenario's own)")
-    unknown = sorted(set(overrides) - set(OVERRIDES))
-    if unknown:
-        raise ValueError(f"unknown override(s) {unknown}: valid overrides are {list(OVERRIDES)}")
-    kw: dict = {"delay_s": sc.delay_s, "mismatch": sc.mismatch}
-    for k, v in overrides.items():
-        if v is None:
+    allowed = OVERRIDES if version == "v0" else OVERRIDES + OVERRIDES_V1
+    kw = _parse_overrides(overrides, allowed, version)
+    base: dict = {"delay_s": sc.delay_s, "mismatch": sc.mismatch}
+    if version == "v0":
+        return EnvConfig(scenario=sc, disturbance=DISTURBANCE_LEVELS[level], **{**base, **kw})
+    rng_map: dict[str, tuple[float, float]] = dict(ranges or {})
+    cond_kw: dict = {}
+    env_kw: dict = dict(base)
+    for k, v in kw.items():
+        if isinstance(v, tuple) and k in RANGEABLE:
+            rng_map[k] = v
             continue
-        if k in ("force_limits", "p_d") and not isinstance(v, tuple):
-            try:
-                v = tuple(float(x) for x in v)  # type: ignore[union-attr]
-            except TypeError as exc:
-                raise ValueError(f"{k}={v!r} is invalid: must be a sequence of numbers") from exc
-        elif k == "physics_substeps":
-            pass
-        elif isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ValueError(f"{k}={v!r} is invalid: must be a number")
-        else:
-            v = float(v)
-        kw[k] = v
-    return EnvConfig(scenario=sc, disturbance=DISTURBANCE_LEVELS[level], **kw)
+        rng_map.pop(k, None)  # a fixed value replaces the tier's range
+        (env_kw if k in OVERRIDES else cond_kw)[k] = v
+    for k in rng_map:
+        if k not in RANGEABLE:
+            raise ValueError(f"ranges has {k!r}: only {list(RANGEABLE)} can be drawn per reset")
+    dt = float(env_kw.get("dt", 0.05))
+    defaults = _condition_defaults(sc, dt, float(env_kw["delay_s"]))
+    for k, v in defaults.items():
+        cond_kw.setdefault(k, v)
+    if "warmup_s" not in cond_kw:
+        def hi(name: str) -> float:
+            return rng_map[name][1] if name in rng_map else float(cond_kw.get(name, CONDITION_INDEX[name].default or 0))
+        cond_kw["warmup_s"] = min(120.0, hi("latency_s") + 3 * hi("latency_spread_s") + 2 * hi("update_period_s"))
+    # validate the ranges with the fields' own bounds: all lower ends, all upper ends, then the
+    # base condition at the ranges' midpoints (what the task spec reports)
+    for end in (0, 1):
+        for k, r in rng_map.items():
+            if k == "mismatch":
+                _in_range("mismatch", r[end], *BOUNDS["mismatch"][:2])
+        Condition(**{**cond_kw, **{k: r[end] for k, r in rng_map.items() if k != "mismatch"}})
+    cond = Condition(**{**cond_kw, **{k: 0.5 * (r[0] + r[1]) for k, r in rng_map.items() if k != "mismatch"}})
+    if "mismatch" in rng_map:
+        env_kw["mismatch"] = 0.5 * sum(rng_map["mismatch"])
+    env_kw.setdefault("delay_s", 0.0)
+    if cond.update_period_s < dt - 1e-12 and "update_period_s" not in rng_map:
+        raise ValueError(f"update_period_s={cond.update_period_s} is invalid: must be >= dt={dt} s "
+                         f"(at most one packet per control step)")
+    return EnvConfig(scenario=sc, disturbance=DISTURBANCE_LEVELS[level], condition=cond,
+                     ranges=MappingProxyType(dict(rng_map)), tier=tier, **env_kw)
 
 
 def make_task_spec(scenario: str = "S4", disturbance: str | None = None, **overrides: object) -> TaskSpec:
-    """The :class:`TaskSpec` of the env ``AUVFollow-v0`` made with the same arguments."""
+    """The :class:`TaskSpec` of the env made with the same arguments (``version="v1"`` for v1)."""
     return make_config(scenario, disturbance, **overrides).task_spec()
-
-

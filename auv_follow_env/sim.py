@@ -8,15 +8,17 @@ format output.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 
 from auv_follow_env import dynamics as dyn
-from auv_follow_env.layout import OBS_DIM
-from auv_follow_env.params import EnvConfig, VehicleParams
+from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1
+from auv_follow_env.params import LATENCY_MODELS, RANGEABLE, Condition, EnvConfig, VehicleParams
 
-__all__ = ["BatchSim", "param_row", "sample_params", "config_vector"]
+__all__ = ["BatchSim", "param_row", "sample_params", "sample_params_v1", "link_row", "config_vector",
+           "queue_capacity"]
 
 TWO_PI = 2.0 * math.pi
 #: range of the current's period [s] (ours: "slowly varying", tens of seconds)
@@ -29,11 +31,12 @@ def param_row(*, vehicle: VehicleParams, target_speed: float = 0.0, surge_amp: f
               current_x: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
               current_y: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
               disturbance: tuple[tuple[float, float, float, float], ...] = ((0.0,) * 4,) * 3,
-              ) -> np.ndarray:
+              latency_steps: int = 0) -> np.ndarray:
     """One row of the kernel's parameter array, from explicit values.
 
     ``current_x``/``current_y`` are (mean [m/s], amplitude [m/s], omega [rad/s], phase);
-    ``disturbance`` is three rows (u, v, r) of (amp1, phase1, amp2, phase2) in N / N m.
+    ``disturbance`` is three rows (u, v, r) of (amp1, phase1, amp2, phase2) in N / N m;
+    ``latency_steps`` the constant delay tau / dt of the v0 link.
     """
     row = np.zeros(dyn.NP)
     row[[dyn.P_M, dyn.P_IZ, dyn.P_XU, dyn.P_YV, dyn.P_NR]] = (
@@ -43,6 +46,38 @@ def param_row(*, vehicle: VehicleParams, target_speed: float = 0.0, surge_amp: f
     row[dyn.P_CX:dyn.P_CX + 4] = current_x
     row[dyn.P_CY:dyn.P_CY + 4] = current_y
     row[dyn.P_D:dyn.P_D + 12] = np.asarray(disturbance, dtype=np.float64).ravel()
+    # v0: no random processes, unbounded target, ideal thrusters, a packet every step with the
+    # constant latency set by link_row (or config_vector's delay)
+    row[dyn.P_OUU_A] = row[dyn.P_OUR_A] = row[dyn.P_CS_A] = row[dyn.P_DN_A] = 1.0
+    row[dyn.P_ULO], row[dyn.P_UHI], row[dyn.P_RMAX] = -math.inf, math.inf, math.inf
+    row[dyn.P_TH_ALPHA], row[dyn.P_TH_RATE] = 1.0, math.inf
+    row[dyn.P_PER] = 1.0
+    row[dyn.P_LAT_MEAN] = latency_steps
+    row[dyn.P_LAT_CORR] = 1.0
+    return row
+
+
+def link_row(row: np.ndarray, c: Condition, dt: float, vehicle: VehicleParams) -> np.ndarray:
+    """Write condition ``c``'s processes, thrusters and link into a param row (in place)."""
+    row[dyn.P_OUU_STD], row[dyn.P_OUU_A] = c.target_speed_std, math.exp(-dt / c.target_speed_corr_s)
+    row[dyn.P_OUR_STD], row[dyn.P_OUR_A] = c.target_yaw_rate_std, math.exp(-dt / c.target_yaw_rate_corr_s)
+    row[dyn.P_ULO], row[dyn.P_UHI], row[dyn.P_RMAX] = c.target_speed_min, c.target_speed_max, c.target_yaw_rate_max
+    row[dyn.P_CS_MEAN], row[dyn.P_CS_STD] = c.current_speed, c.current_speed_std
+    row[dyn.P_CS_A] = math.exp(-dt / c.current_corr_s)
+    row[dyn.P_CD_STEP] = c.current_direction_drift * math.sqrt(dt)
+    row[dyn.P_DN:dyn.P_DN + 3] = (c.disturbance_noise_u * vehicle.m, c.disturbance_noise_v * vehicle.m,
+                                  c.disturbance_noise_r * vehicle.I_z)
+    row[dyn.P_DN_A] = math.exp(-dt / c.disturbance_corr_s)
+    row[dyn.P_TH_ALPHA] = 1.0 - math.exp(-dt / c.thruster_tc_s) if c.thruster_tc_s > 0 else 1.0
+    row[dyn.P_TH_RATE] = c.thruster_rate * dt
+    row[dyn.P_PER], row[dyn.P_JIT] = c.update_period_s / dt, c.period_jitter_s / dt
+    row[dyn.P_LAT_KIND] = LATENCY_MODELS.index(c.latency_model)
+    row[dyn.P_LAT_MEAN], row[dyn.P_LAT_SPREAD] = c.latency_s / dt, c.latency_spread_s / dt
+    row[dyn.P_LAT_CORR] = c.latency_corr_s / dt
+    row[dyn.P_LOSS], row[dyn.P_GB] = c.loss_prob, c.burst_p_good_bad
+    row[dyn.P_BG], row[dyn.P_LOSS_BAD] = c.burst_p_bad_good, c.burst_loss_bad
+    row[dyn.P_NS0], row[dyn.P_NSK], row[dyn.P_NPSI] = c.fix_sigma_m, c.fix_sigma_per_m, c.heading_sigma_rad
+    row[dyn.P_NVEL], row[dyn.P_NYAW] = c.velocity_sigma_mps, c.yaw_rate_sigma_radps
     return row
 
 
@@ -70,7 +105,65 @@ def sample_params(config: EnvConfig, rng: np.random.Generator) -> np.ndarray:
         vehicle=veh, target_speed=tp.speed, surge_amp=tp.surge_amp, surge_period=tp.surge_period,
         surge_phase=TWO_PI * u[0], yaw_rate_amp=tp.yaw_rate_amp, yaw_period=tp.yaw_period,
         yaw_phase=TWO_PI * u[1], current_x=cur(lvl.current_x, u[2], u[3]),
-        current_y=cur(lvl.current_y, u[4], u[5]), disturbance=dist)
+        current_y=cur(lvl.current_y, u[4], u[5]), disturbance=dist, latency_steps=config.delay_steps)
+
+
+def sample_params_v1(config: EnvConfig, rng: np.random.Generator) -> tuple[np.ndarray, int, float, dict]:
+    """Draw one v1 episode from ``rng``: (param row, kernel seed, current direction, condition).
+
+    Order of the draws (fixed, so a seed means the same episode everywhere): one uniform per
+    ranged field (in :data:`~auv_follow_env.params.RANGEABLE` order), v0's 12 uniforms
+    (phases, current periods), one uniform for the Gauss-Markov current's direction, and the
+    64-bit seed of the env's in-kernel generator (link, noise, random processes). With no
+    ranges, the phases equal those of the v0 env with the same seed.
+    """
+    c = config.condition
+    assert c is not None
+    drawn = {}
+    for name in RANGEABLE:
+        if name in config.ranges:
+            lo, hi = config.ranges[name]
+            drawn[name] = lo + (hi - lo) * float(rng.random())
+    mismatch = drawn.pop("mismatch", config.mismatch)
+    if drawn:
+        c = dataclasses.replace(c, **drawn)
+    cfg = dataclasses.replace(config, mismatch=mismatch, ranges={}) if mismatch != config.mismatch else config
+    sc = config.scenario
+    if c.current_x is not None or c.current_y is not None:
+        lvl = config.disturbance
+        cfg = dataclasses.replace(cfg, disturbance=dataclasses.replace(
+            lvl, current_x=c.current_x or lvl.current_x, current_y=c.current_y or lvl.current_y))
+    cfg = dataclasses.replace(cfg, scenario=dataclasses.replace(sc, target=dataclasses.replace(
+        sc.target, speed=max(c.target_speed, 1e-9), surge_amp=c.target_surge_amp, yaw_rate_amp=c.target_yaw_rate_amp)))
+    row = sample_params(cfg, rng)
+    if c.target_speed == 0.0:
+        row[dyn.P_TV] = 0.0
+    direction = TWO_PI * float(rng.random())
+    if c.current_direction_rad is not None:
+        direction = float(c.current_direction_rad)
+    seed = int(rng.integers(0, 2**63, dtype=np.int64))
+    link_row(row, c, config.dt, cfg.true_vehicle)
+    condition = {**c.as_dict(), "mismatch": mismatch, "current_direction_rad": direction}
+    for n in ("current_x", "current_y"):
+        condition[n] = getattr(cfg.disturbance, n)
+    return row, seed, direction, condition
+
+
+def queue_capacity(config: EnvConfig) -> int:
+    """Packets that can be in flight at once (v0: tau / dt + 2; v1: from the largest latency and
+    the shortest period). When the queue is full the oldest packet is dropped (counted)."""
+    c = config.condition
+    if c is None:
+        return config.delay_steps + 2
+
+    def hi(name: str) -> float:
+        return config.ranges[name][1] if name in config.ranges else float(getattr(c, name))
+
+    def lo(name: str) -> float:
+        return config.ranges[name][0] if name in config.ranges else float(getattr(c, name))
+
+    period = max(config.dt, lo("update_period_s") - hi("period_jitter_s"))
+    return int(math.ceil((hi("latency_s") + 4.0 * hi("latency_spread_s")) / period)) + 4
 
 
 def config_vector(config: EnvConfig) -> np.ndarray:
@@ -87,6 +180,9 @@ def config_vector(config: EnvConfig) -> np.ndarray:
     c[dyn.C_NSTEPS] = config.n_steps
     c[dyn.C_EFFORT] = config.effort_weight
     c[dyn.C_INIT] = config.init_offset_m
+    c[dyn.C_WARM] = config.warmup_steps
+    c[dyn.C_Q] = queue_capacity(config)
+    c[dyn.C_OBSV1] = 1.0 if config.version == "v1" else 0.0
     return c
 
 
@@ -97,12 +193,15 @@ class BatchSim:
         self.config = config
         self.num_envs = num_envs
         self.cfg = config_vector(config)
-        L = config.delay_steps + 1
+        self.v1 = config.version == "v1"
         self.state = np.zeros((num_envs, 9))
         self.k = np.zeros(num_envs, dtype=np.int64)
-        self.buf = np.zeros((num_envs, L, 6))
+        self.proc = np.zeros((num_envs, dyn.NR))
+        self.queue = np.zeros((num_envs, int(self.cfg[dyn.C_Q]), 8))
+        self.rs = np.zeros(num_envs, dtype=np.uint64)
         self.params = np.zeros((num_envs, dyn.NP))
-        self.obs = np.zeros((num_envs, OBS_DIM), dtype=np.float32)
+        self.conditions: list[dict | None] = [None] * num_envs
+        self.obs = np.zeros((num_envs, OBS_DIM_V1 if self.v1 else OBS_DIM), dtype=np.float32)
         self.truth = np.zeros((num_envs, dyn.NT))
         self.err_hist = np.zeros((num_envs, config.n_steps))
         self.rew = np.zeros(num_envs)
@@ -111,20 +210,33 @@ class BatchSim:
 
     def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
         """New episodes for envs ``idx``, drawing env idx[j]'s parameters from rngs[j]."""
-        for i, rng in zip(idx, rngs, strict=True):
-            self.params[i] = sample_params(self.config, rng)
-        dyn.reset_kernel(self.state, self.k, self.buf, self.params, self.cfg,
-                         np.asarray(idx, dtype=np.int64), self.obs, self.truth)
+        idx = np.asarray(idx, dtype=np.int64)
+        seeds = np.zeros(len(idx), dtype=np.int64)
+        directions = np.zeros(len(idx))
+        for j, (i, rng) in enumerate(zip(idx, rngs, strict=True)):
+            if self.v1:
+                self.params[i], seeds[j], directions[j], self.conditions[i] = sample_params_v1(self.config, rng)
+            else:
+                self.params[i] = sample_params(self.config, rng)
+        dyn.reset_kernel(self.state, self.k, self.proc, self.queue, self.rs, self.params, self.cfg, idx, seeds,
+                         directions, self.obs, self.truth)
 
     def step(self, action_flat: np.ndarray) -> int:
         """Advance all envs; returns -1 or the index of an env with a non-finite action."""
-        return dyn.step_kernel(self.state, self.k, self.buf, self.params, self.cfg, self.obs,
-                               self.truth, self.err_hist, self.rew, self.term, action_flat)
+        kernel, args = self.step_call()
+        return kernel(*args, action_flat)
 
     def step_call(self) -> tuple:
         """(kernel, leading args) so a hot loop can call ``kernel(*args, action_flat)``."""
-        return (dyn.step_kernel, (self.state, self.k, self.buf, self.params, self.cfg, self.obs,
-                             self.truth, self.err_hist, self.rew, self.term))
+        return (dyn.step_kernel, (self.state, self.k, self.proc, self.queue, self.rs, self.params, self.cfg,
+                                  self.obs, self.truth, self.err_hist, self.rew, self.term))
+
+    def link_stats(self, i: int) -> dict[str, int]:
+        """Env i's packet counts since t = 0: sent, lost, arrived (accepted), discarded
+        (arrived after a newer one), overflow (dropped from a full queue)."""
+        p = self.proc[i]
+        return {"sent": int(p[dyn.R_SENT]), "lost": int(p[dyn.R_LOST]), "arrived": int(p[dyn.R_ARRIVED]),
+                "discarded": int(p[dyn.R_DISCARDED]), "overflow": int(p[dyn.R_OVERFLOW])}
 
     def errors(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """(errors, times) recorded so far in env i's episode (post-step samples)."""

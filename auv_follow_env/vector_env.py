@@ -17,10 +17,10 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from auv_follow_env.env import check_action
-from auv_follow_env.layout import OBS_DIM
 from auv_follow_env.metrics import METRIC_KEYS, tracking_metrics
-from auv_follow_env.params import TaskSpec, make_config
+from auv_follow_env.params import TaskSpec
 from auv_follow_env.sim import BatchSim
+from auv_follow_env.tiers import make_env_config
 
 __all__ = ["AUVFollowVectorEnv"]
 
@@ -30,7 +30,8 @@ _parallel_step = None  # compiled on first use of parallel=True only (no threads
 
 
 def _get_parallel_step():
-    """``step(state, k, buf, p, cfg, obs, truth, err_hist, rew, term, action)`` over threads.
+    """``step(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, chunks)``
+    over threads.
 
     The same :func:`~auv_follow_env.dynamics.step_kernel`, called on contiguous chunks of
     the batch from a ``prange`` loop: no second copy of the physics. The caller checks the
@@ -44,14 +45,14 @@ def _get_parallel_step():
         from auv_follow_env.dynamics import step_kernel
 
         @njit(cache=True, parallel=True)
-        def step_chunks(state, k, buf, p, cfg, obs, truth, err_hist, rew, term, action, chunks):
+        def step_chunks(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, chunks):
             n = state.shape[0]
             for c in prange(chunks):
                 a = c * n // chunks
                 b = (c + 1) * n // chunks
                 if b > a:
-                    step_kernel(state[a:b], k[a:b], buf[a:b], p[a:b], cfg, obs[a:b], truth[a:b],
-                                err_hist[a:b], rew[a:b], term[a:b], action[3 * a:3 * b])
+                    step_kernel(state[a:b], k[a:b], proc[a:b], queue[a:b], rs[a:b], p[a:b], cfg, obs[a:b],
+                                truth[a:b], err_hist[a:b], rew[a:b], term[a:b], action[3 * a:3 * b])
 
         _parallel_step = (step_chunks, numba)
     return _parallel_step
@@ -114,13 +115,14 @@ class AUVFollowVectorEnv(VectorEnv):
 
     def __init__(self, num_envs: int = 1, scenario: str = "S4", disturbance: str | None = None,
                  render_mode: str | None = None, max_episode_steps: int | None = None,
-                 parallel: bool = False, **overrides: Any) -> None:
+                 parallel: bool = False, *, version: str = "v0", tier: str | None = None,
+                 **overrides: Any) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs={num_envs!r} is invalid: must be an integer >= 1")
         if render_mode is not None:
             raise ValueError(f"render_mode={render_mode!r} is not supported by the vector env: pass "
                              f"None (render a single AUVFollowEnv instead)")
-        self.config = make_config(scenario, disturbance, **overrides)
+        self.config = make_env_config(scenario, disturbance, version=version, tier=tier, **overrides)
         n_steps = self.config.n_steps
         if max_episode_steps is not None and max_episode_steps != n_steps:
             raise ValueError(
@@ -132,7 +134,7 @@ class AUVFollowVectorEnv(VectorEnv):
         self.task_spec: TaskSpec = self.config.task_spec()
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.config.dt))}
         self.single_action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
-        self.single_observation_space = spaces.Box(-np.inf, np.inf, (OBS_DIM,), np.float32)
+        self.single_observation_space = spaces.Box(-np.inf, np.inf, (self.task_spec.obs_dim,), np.float32)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
 
@@ -198,6 +200,8 @@ class AUVFollowVectorEnv(VectorEnv):
         self._autoreset_idx = np.flatnonzero(self._autoreset)
         self._started = True
         info = self._info(mask if not mask.all() else None)
+        if self._sim.v1:
+            info["condition"], info["_condition"] = self._conditions(mask)
         return self._sim.obs.copy(), info
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -243,6 +247,10 @@ class AUVFollowVectorEnv(VectorEnv):
         truncated &= ~terminated
         rewards = sim.rew.copy()
         metrics = None
+        link = None
+        done_now = (terminated | truncated) & ~self._autoreset
+        if sim.v1 and done_now.any():
+            link = self._link_stats(done_now)
         if ended.size:
             sim.reset(ended, [self._rngs[i] for i in ended])
             rewards[ended] = 0.0
@@ -256,6 +264,12 @@ class AUVFollowVectorEnv(VectorEnv):
         info = self._info(None)
         if metrics is not None:
             info["episode_metrics"], info["_episode_metrics"] = metrics, done.copy()
+        if link is not None:
+            info["link_stats"], info["_link_stats"] = link, done.copy()
+        if sim.v1 and ended.size:
+            started = np.zeros(self.num_envs, dtype=np.bool_)
+            started[ended] = True
+            info["condition"], info["_condition"] = self._conditions(started)
         return sim.obs.copy(), rewards, terminated, truncated, info
 
     def close_extras(self, **kwargs: Any) -> None:
@@ -273,6 +287,29 @@ class AUVFollowVectorEnv(VectorEnv):
         for key in _INFO_KEYS:
             info["_" + key] = m.copy()
         return info
+
+    def _conditions(self, mask: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """v1: the conditions drawn for the envs in ``mask`` (NaN / None elsewhere), with the mask."""
+        sim = self._sim
+        first = next(c for c in sim.conditions if c is not None)
+        out: dict[str, np.ndarray] = {}
+        for key, value in first.items():
+            numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+            arr = np.full(self.num_envs, np.nan) if numeric else np.full(self.num_envs, None, dtype=object)
+            for i in np.flatnonzero(mask):
+                arr[i] = sim.conditions[i][key]
+            out[key] = arr
+        return out, mask.copy()
+
+    def _link_stats(self, done: np.ndarray) -> dict[str, np.ndarray]:
+        """v1: packet counts of the episodes that ended (-1 elsewhere)."""
+        sim = self._sim
+        out = {key: np.full(self.num_envs, -1, dtype=np.int64)
+               for key in ("sent", "lost", "arrived", "discarded", "overflow")}
+        for i in np.flatnonzero(done):
+            for key, value in sim.link_stats(i).items():
+                out[key][i] = value
+        return out
 
     def _episode_metrics(self, done: np.ndarray) -> dict[str, np.ndarray]:
         """The paper's metrics of the episodes that ended (NaN elsewhere), with masks."""

@@ -567,9 +567,9 @@ def test_sb3_evaluate_policy_runs_each_controller():
     from stable_baselines3.common.evaluation import evaluate_policy
 
     def make():
-        return gym.make("AUVFollow-S1-v0", episode_s=5.0, max_episode_steps=100)
+        return gym.make("AUVFollow-S1-v0", episode_s=5.0, steady_start_s=2.0, max_episode_steps=100)
 
-    spec = make_task_spec("S1", episode_s=5.0)
+    spec = make_task_spec("S1", episode_s=5.0, steady_start_s=2.0)
     means = {}
     for name in (*CONTROLLERS, "zero"):
         venv = make_vec_env(make, n_envs=2, seed=0)

@@ -7,7 +7,7 @@ import pytest
 
 from agents.vec_adapter import NativeVecEnv
 
-SHORT = {"episode_s": 1.0}  # 20 steps per episode
+SHORT = {"episode_s": 1.0, "steady_start_s": 0.5}  # 20 steps per episode
 
 
 def _reference_venv(n, seed):

@@ -15,7 +15,7 @@ from auv_follow_env.metrics import METRIC_KEYS
 from auv_follow_env.vector_env import AUVFollowVectorEnv
 
 ID = "AUVFollow-S4-v0"
-SHORT = {"episode_s": 2.0, "max_episode_steps": 40}  # 40 steps: several autoresets per test
+SHORT = {"episode_s": 2.0, "steady_start_s": 1.0, "max_episode_steps": 40}  # 40 steps: several autoresets per test
 TERMINATING = {**SHORT, "max_distance_m": 2.5}  # random forces drift past 2.5 m at various steps
 INFO_KEYS = ("tracking_error", "time", "true_target", "true_reference", "follower_pose")
 
@@ -191,7 +191,7 @@ def test_bad_actions_raise_and_change_nothing(bad, match):
     venv.step(good[0])
     twin.step(good[0])
     sim = venv.unwrapped._sim
-    before = {k: getattr(sim, k).copy() for k in ("state", "k", "buf", "obs", "truth", "rew", "term")}
+    before = {k: getattr(sim, k).copy() for k in ("state", "k", "proc", "queue", "rs", "obs", "truth", "rew", "term")}
     action = good[1].astype(np.float64)
     if bad == "nan":
         action[1, 2] = np.nan
@@ -274,7 +274,7 @@ def test_registered_for_every_id_and_arguments_validated():
         assert isinstance(venv, AUVFollowVectorEnv)
         venv.close()
     with pytest.raises(ValueError, match="max_episode_steps=1200 disagrees"):
-        _vec(2, {"episode_s": 2.0, "max_episode_steps": 1200})
+        _vec(2, {"episode_s": 2.0, "steady_start_s": 1.0, "max_episode_steps": 1200})
     with pytest.raises(ValueError, match="unknown override"):
         _vec(2, {"delay": 1.0})
     with pytest.raises(ValueError, match="render_mode"):
