@@ -63,6 +63,8 @@ LEADERBOARD_METRICS: tuple[str, ...] = ("true_steady_mean", "true_full_mean")
 #: every error metric (replaced by the loss threshold for terminated episodes)
 ERROR_METRICS: tuple[str, ...] = tuple(f"true_{w}_{s}" for w in ("full", "steady") for s in ("mean", "rmse", "max"))
 DEFAULT_RESAMPLES = 10_000
+#: policy token standing for every registered scripted controller
+CLASSICAL = "classical"
 DEFAULT_BOOTSTRAP_SEED = 0
 
 
@@ -639,8 +641,8 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
     """Score ``policies`` on ``tiers`` and build the leaderboard.
 
     Args:
-        policies: controller names, run directories, directories of runs or ``label=run,run``
-            (default: every registered scripted controller).
+        policies: controller names, run directories, directories of runs, ``label=run,run``
+            or ``"classical"`` (every registered scripted controller; the default).
         tiers: tier names or ids (``"S4"``, ``"Hard"``, ``"AUVFollow-Hard-v1"``).
         seeds: override the published test seeds (one list for all tiers, or per tier); for
             quick looks only - the leaderboard protocol is the published seeds.
@@ -653,7 +655,10 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
     Raises:
         ValueError: unknown tier or policy, bad seeds.
     """
-    specs = [parse_policy(p) for p in (list(policies) if policies is not None else list(_controllers()))]
+    items: list[Any] = []
+    for p in (list(policies) if policies is not None else [CLASSICAL]):
+        items.extend(_controllers() if p == CLASSICAL else [p])
+    specs = [parse_policy(p) for p in items]
     if not specs:
         raise ValueError("policies is empty: give at least one controller name or run directory")
     labels = [s.label for s in specs]

@@ -181,8 +181,8 @@ def _add_benchmark_commands(sub: Any) -> None:
 
     b = sub.add_parser("benchmark", help="score policies on the tiers' test seeds: per-episode table + leaderboard")
     b.add_argument("--policies", nargs="+", default=None, metavar="POLICY",
-                   help="controller names, run directories, directories of runs, or label=run,run "
-                        "(default: every scripted controller)")
+                   help="controller names, 'classical' (every scripted controller), run directories, "
+                        "directories of runs, or label=run,run (default: classical)")
     b.add_argument("--tiers", nargs="+", default=["S4"], metavar="TIER",
                    help="S1..S4 (paper scenarios) and/or Easy, Medium, Hard, Extreme (v1 tiers)")
     b.add_argument("--seeds", type=_seeds, default=None,
