@@ -4,7 +4,9 @@ episodes, clear errors, and one tiny end-to-end run through the CLI."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
@@ -12,14 +14,19 @@ import pytest
 
 from agents.benchmark import (
     evaluate_tier,
+    goal_check,
     iqm,
     leaderboard,
     parse_policy,
     probability_of_improvement,
     resolve_tier,
     stratified_bootstrap_ci,
+    tier_test_seeds,
 )
 from agents.cli import main
+
+V0_AGENT = (Path(__file__).resolve().parent.parent / "results" / "agents" / "runs"
+            / "ppo-AUVFollow-S4-v0-scratch-seed1-20261123-114019")
 
 # --- statistics ------------------------------------------------------------------------------
 
@@ -164,3 +171,27 @@ def test_cli_rejects_unknown_tier(capsys):
     with pytest.raises(SystemExit):
         main(["benchmark", "--tiers", "S9", "--no-progress"])
     assert "tier='S9'" in capsys.readouterr().err
+
+
+def test_goal_check_on_the_hand_leaderboard():
+    board = leaderboard(_episodes(), n_resamples=500)
+    g = goal_check(board.assign(tier="Hard"), "Hard")
+    assert g["best_learned"] == "B" and g["best_classical"] == "A"
+    assert g["change_pct"] == pytest.approx(-50.0)
+    assert g["met"] == (g["learned_ci"][1] < g["classical_ci"][0])
+
+
+def test_v1_tier_uses_the_published_test_seeds_and_records_the_condition():
+    import auv_follow_env
+
+    assert tier_test_seeds("Hard") == list(auv_follow_env.TIERS["Hard"].test_seeds)
+    assert resolve_tier("AUVFollow-Extreme-v1") == ("Extreme", "AUVFollow-Extreme-v1")
+    # a v0-trained agent runs on a v1 tier through the v0 prefix of the v1 observation
+    spec = parse_policy("old=" + str(V0_AGENT))
+    df = evaluate_tier([spec], "Hard", [3_000_000], progress=False)
+    first = auv_follow_env.TIERS["Hard"].test_seeds[0]
+    env = gym.make("AUVFollow-Hard-v1")
+    _, info = env.reset(seed=first)
+    assert df.loc[0, "cond_latency_s"] == pytest.approx(info["condition"]["latency_s"])
+    assert df.loc[0, "cond_loss_prob"] == pytest.approx(info["condition"]["loss_prob"])
+    assert df.loc[0, "env_id"] == "AUVFollow-Hard-v1" and np.isfinite(df.loc[0, "true_full_mean"])
