@@ -35,6 +35,7 @@ import dataclasses
 import json
 import math
 import platform
+import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -326,6 +327,11 @@ def _agent_obs_width(agent: Any) -> int:
         return OBS_DIM
 
 
+class IncompatiblePolicy(ValueError):
+    """A policy that cannot run on a tier (e.g. an agent trained on the 20-field v1
+    observation, on a 16-field v0 scenario)."""
+
+
 def build_policy(spec: PolicySpec, run: str | None, env_id: str, task_spec: Any, obs_width: int) -> Any:
     """The policy object (SB3 ``predict`` protocol over raw observations of ``env_id``) of one
     run of ``spec`` (or of its controller)."""
@@ -338,8 +344,8 @@ def build_policy(spec: PolicySpec, run: str | None, env_id: str, task_spec: Any,
     agent = load_agent(run, name=spec.label)
     width = _agent_obs_width(agent)
     if width > obs_width:
-        raise ValueError(f"policy={spec.label!r} (run {run}) was trained on {width}-wide observations and cannot run "
-                         f"on {env_id} ({obs_width} fields)")
+        raise IncompatiblePolicy(f"policy={spec.label!r} (run {run}) was trained on {width}-wide observations and "
+                                 f"cannot run on {env_id} ({obs_width} fields)")
     policy = agent.raw_policy(env_id if width == obs_width else agent.env_id, {}) if agent.mode == "residual" \
         else agent
     return _ObsPrefix(policy, width) if width < obs_width else policy
@@ -377,8 +383,11 @@ def _max_distance(env_id: str) -> float:
 
 
 def evaluate_tier(policies: Sequence[PolicySpec], tier: str, seeds: Sequence[int] | None = None, *,
-                  batched: bool = True, progress: bool = True) -> pd.DataFrame:
+                  batched: bool = True, progress: bool = True, skip_incompatible: bool = True) -> pd.DataFrame:
     """Per-episode rows of every run of every policy on one tier's seeds.
+
+    A policy that cannot run on the tier (:class:`IncompatiblePolicy`, e.g. a v1-trained
+    agent on a v0 scenario) is left out with a warning (``skip_incompatible``) or raises.
 
     All runs share one native vector env (:func:`controllers.evaluation.evaluate_batched`)
     unless ``batched`` is False (one single-env episode at a time, same numbers).
@@ -396,8 +405,19 @@ def evaluate_tier(policies: Sequence[PolicySpec], tier: str, seeds: Sequence[int
     task_spec = probe.unwrapped.task_spec
     obs_width = int(probe.observation_space.shape[0])
     probe.close()
-    entries = [(spec, run) for spec in policies for run in (spec.runs or (None,))]
-    objs = [build_policy(spec, run, env_id, task_spec, obs_width) for spec, run in entries]
+    entries, objs = [], []
+    for spec in policies:
+        try:
+            built = [(run, build_policy(spec, run, env_id, task_spec, obs_width)) for run in (spec.runs or (None,))]
+        except IncompatiblePolicy as exc:
+            if not skip_incompatible:
+                raise
+            warnings.warn(f"{name}: {exc}; {spec.label!r} is left out of this tier", stacklevel=2)
+            continue
+        entries.extend((spec, run) for run, _ in built)
+        objs.extend(obj for _, obj in built)
+    if not entries:
+        raise ValueError(f"tier={tier!r}: none of the policies can run on {env_id}")
     labels = [spec.label for spec, _ in entries]
     if batched:
         df = evaluate_batched(objs, env_id, seeds, policy_names=labels, progress=progress)
