@@ -71,7 +71,7 @@ def _key_value(text: str) -> tuple[str, Any]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from controllers import CONTROLLERS
+    from controllers import ALL_CONTROLLERS
 
     p = argparse.ArgumentParser(prog="auv-follow", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -83,8 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--env-kwarg", dest="env_kwargs", type=_key_value, action="append", default=[],
                    metavar="KEY=VALUE", help="scenario override for gym.make (repeatable), e.g. disturbance=L1")
     t.add_argument("--mode", choices=MODES, default="residual")
-    t.add_argument("--controller", choices=CONTROLLERS, default=DEFAULT_CONTROLLER,
-                   help="base controller of a residual agent")
+    t.add_argument("--controller", choices=ALL_CONTROLLERS, default=DEFAULT_CONTROLLER,
+                   help="base controller of a residual agent (the paper's four, or ours: PROPOSED_KF, "
+                        "PROPOSED_KF_DOB, MPC)")
     t.add_argument("--scale", type=_positive_float, default=DEFAULT_SCALE,
                    help="residual authority as a fraction of the force limits")
     t.add_argument("--history-len", type=int, default=DEFAULT_HISTORY_LEN)
@@ -125,7 +126,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--env-kwarg", dest="env_kwargs", type=_key_value, action="append", default=[],
                    metavar="KEY=VALUE")
     c.add_argument("--seeds", type=_seeds, default=list(range(1000, 1010)))
-    c.add_argument("--controllers", nargs="*", choices=CONTROLLERS, default=list(CONTROLLERS))
+    c.add_argument("--controllers", nargs="*", choices=ALL_CONTROLLERS, default=list(ALL_CONTROLLERS),
+                   help="scripted controllers to include (default: the paper's four and ours)")
     c.add_argument("--out", default="results/compare", help="directory for compare.csv/.md/.png")
     c.add_argument("--name", default="compare")
     c.add_argument("--no-progress", dest="progress", action="store_false")

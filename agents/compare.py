@@ -35,7 +35,8 @@ def compare(agents: Sequence[Agent | str | Path] = (), env_id: str = "AUVFollow-
         agents: loaded agents or run directories / model files.
         env_id: registered AUVFollow id (agents trained elsewhere are evaluated here too).
         seeds: test seeds (use seeds the agents were not trained on).
-        controllers: scripted controllers to include (default: all four).
+        controllers: scripted controllers to include (default: the paper's four and ours,
+            ``controllers.ALL_CONTROLLERS``).
         env_kwargs: scenario overrides for every policy.
         reference: the policy the ``*_change_pct`` columns compare against.
         out_dir: if given, write ``<name>.csv`` (per-episode rows), ``<name>_summary.csv``,
@@ -47,14 +48,14 @@ def compare(agents: Sequence[Agent | str | Path] = (), env_id: str = "AUVFollow-
     Raises:
         ValueError: unknown env id or controller name.
     """
-    from controllers import CONTROLLERS, make_controller
+    from controllers import ALL_CONTROLLERS, make_controller
     from controllers.evaluation import evaluate
 
     check_env_id(env_id)
-    names = list(CONTROLLERS if controllers is None else controllers)
+    names = list(ALL_CONTROLLERS if controllers is None else controllers)
     for n in names:
-        if n not in CONTROLLERS:
-            raise ValueError(f"controller={n!r} is unknown: valid controllers are {list(CONTROLLERS)}")
+        if n not in ALL_CONTROLLERS:
+            raise ValueError(f"controller={n!r} is unknown: valid controllers are {list(ALL_CONTROLLERS)}")
     seeds = list(seeds)
     probe = gym.make(env_id, **(env_kwargs or {}))
     spec = probe.unwrapped.task_spec

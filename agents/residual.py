@@ -29,7 +29,7 @@ import numpy as np
 from gymnasium import spaces
 
 from auv_follow_env.layout import LAYOUTS, OBS_DIM, obs_slice
-from controllers import CONTROLLERS, make_controller
+from controllers import ALL_CONTROLLERS, make_controller
 
 __all__ = ["ResidualWrapper", "ResidualPolicy", "DelayedTargetHistory", "residual_obs_dim", "make_residual_wrapper"]
 
@@ -49,8 +49,8 @@ def residual_obs_dim(include_base_action: bool = True, history_len: int = DEFAUL
 
 
 def _check(controller: str, scale: float, history_len: int, history_stride: int) -> None:
-    if controller not in CONTROLLERS:
-        raise ValueError(f"controller={controller!r} is unknown: valid controllers are {list(CONTROLLERS)}")
+    if controller not in ALL_CONTROLLERS:
+        raise ValueError(f"controller={controller!r} is unknown: valid controllers are {list(ALL_CONTROLLERS)}")
     if not (np.isfinite(scale) and scale > 0):
         raise ValueError(f"scale={scale!r} is invalid: must be a finite number > 0 (fraction of the force limits)")
     if isinstance(history_len, bool) or not isinstance(history_len, (int, np.integer)) or history_len < 0:
@@ -103,7 +103,7 @@ class ResidualWrapper(gym.Wrapper):
     Args:
         env: an AUVFollow env (``gym.make("AUVFollow-S4-v0")``, possibly wrapped by Monitor
             or TimeLimit); its ``unwrapped.task_spec`` configures the base controller.
-        controller: base controller name, one of ``controllers.CONTROLLERS``.
+        controller: base controller name, one of ``controllers.ALL_CONTROLLERS`` (the paper's four or ours).
         scale: residual authority as a fraction of the force limits (default 0.2).
         include_base_action: append the base action (3) to the observation (default True).
         history_len: number K of lagged delayed-target velocity differences (default 4;

@@ -491,9 +491,12 @@ def link_tick(state, proc, queue, rs, p, cfg, i, step):
     Q = queue.shape[1]
     head = int(proc[i, R_QHEAD])
     newest = -1
+    fifo = p[i, P_LAT_KIND] == LAT_CONSTANT  # constant latency: packets arrive in send order
     for m in range(n):
         if queue[i, (head + m) % Q, Q_ARR] <= step:
             newest = m
+        elif fifo:
+            break
     if newest < 0:
         return
     slot = (head + newest) % Q

@@ -212,6 +212,12 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         self._renderer = None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is not None:
+            if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or seed < 0:
+                raise ValueError(f"seed={seed!r} is invalid: must be None or a non-negative int")
+            seed = int(seed)
+        if options is not None and not isinstance(options, dict):
+            raise ValueError(f"options={options!r} is invalid: must be a dict or None")
         super().reset(seed=seed)
         self._sim.reset(_IDX0, [self.np_random])
         self._started = True

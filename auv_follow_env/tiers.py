@@ -29,7 +29,7 @@ from types import MappingProxyType
 from auv_follow_env.params import CONDITION_INDEX, EnvConfig, make_config
 
 __all__ = ["Tier", "TIERS", "TIER_NAMES", "TRAIN_SEED_LIMIT", "check_training_seeds", "make_tier_config",
-           "make_env_config", "tier_table_markdown"]
+           "make_env_config", "tier_table_markdown", "tier_summary_markdown"]
 
 #: every published test seed is >= this; training seeds must be below it
 TRAIN_SEED_LIMIT = 1_000_000
@@ -197,3 +197,32 @@ def make_env_config(scenario: str = "S4", disturbance: str | None = None, *, ver
             raise ValueError(f"tier={tier!r} needs version='v1' (got version={version!r})")
         return make_tier_config(tier, disturbance, **overrides)
     return make_config(scenario, disturbance, version=version, **overrides)
+
+
+#: the columns of :func:`tier_summary_markdown`: (header, fields shown, unit)
+_SUMMARY = (("fix period", ("update_period_s",), "s"), ("latency model", ("latency_model",), "-"),
+            ("latency (mean; spread)", ("latency_s", "latency_spread_s"), "s"),
+            ("i.i.d. loss", ("loss_prob",), "-"), ("bursts p_gb / p_bg / loss", ("burst_p_good_bad", "burst_p_bad_good",
+                                                                                 "burst_loss_bad"), "-"),
+            ("fix sigma", ("fix_sigma_m", "fix_sigma_per_m"), "m; m/m"),
+            ("target speed; its OU std", ("target_speed", "target_speed_std"), "m/s"),
+            ("turn-rate OU std", ("target_yaw_rate_std",), "rad/s"), ("GM current", ("current_speed",), "m/s"),
+            ("mismatch", ("mismatch",), "-"), ("thruster lag", ("thruster_tc_s",), "s"))
+
+
+def tier_summary_markdown() -> str:
+    """One table, a row per tier, of the fields that set its difficulty (U[a, b]: drawn per reset)."""
+    head = "| tier | " + " | ".join(f"{h} [{u}]" for h, _, u in _SUMMARY) + " | test seeds |"
+    lines = [head, "|" + "---|" * (len(_SUMMARY) + 2)]
+    for t in TIERS.values():
+        merged = {**t.fixed, **t.ranges}
+        cells = []
+        for _, names, _ in _SUMMARY:
+            vals = []
+            for n in names:
+                v = merged.get(n, CONDITION_INDEX[n].default if n in CONDITION_INDEX else None)
+                vals.append(_fmt(v) if v is not None else "-")
+            cells.append("; ".join(vals) if len(names) < 3 else " / ".join(vals))
+        label = f"`{t.env_id}`" + (" (OOD, test only)" if t.out_of_distribution else "")
+        lines.append(f"| {label} | " + " | ".join(cells) + f" | {t.test_seeds[0]}-{t.test_seeds[-1]} |")
+    return "\n".join(lines) + "\n"

@@ -56,6 +56,32 @@ def _get_parallel_step():
 
         _parallel_step = (step_chunks, numba)
     return _parallel_step
+def _is_seed(s: object) -> bool:
+    return isinstance(s, (int, np.integer)) and not isinstance(s, (bool, np.bool_)) and s >= 0
+
+
+def _check_seeds(seed: object, n: int) -> list[int | None]:
+    """Per-env seeds from ``seed`` (None, an int s -> s + i, or N ints / None), all checked
+    before any generator changes."""
+    if seed is None:
+        return [None] * n
+    if _is_seed(seed):
+        return [int(seed) + i for i in range(n)]  # type: ignore[call-overload]
+    if isinstance(seed, np.ndarray) and seed.ndim == 1:
+        seed = seed.tolist()
+    if not isinstance(seed, (list, tuple)):
+        raise ValueError(f"seed={seed!r} is invalid: must be None, a non-negative int, or a list of num_envs={n} "
+                         f"non-negative ints / None (got {type(seed).__name__})")
+    if len(seed) != n:
+        raise ValueError(f"seed is a sequence of length {len(seed)}: a list of seeds must have num_envs={n} entries")
+    bad = [(i, s) for i, s in enumerate(seed) if s is not None and not _is_seed(s)]
+    if bad:
+        i, s = bad[0]
+        raise ValueError(f"seed[{i}]={s!r} is invalid: each entry must be a non-negative int or None "
+                         f"(no env was reseeded)")
+    return [None if s is None else int(s) for s in seed]
+
+
 _INFO_KEYS = ("tracking_error", "time", "true_target", "true_reference", "follower_pose")
 
 
@@ -171,15 +197,9 @@ class AUVFollowVectorEnv(VectorEnv):
             observations (N, 16) float32 and the info dict of arrays.
         """
         n = self.num_envs
-        if seed is None:
-            seeds: list = [None] * n
-        elif isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
-            seeds = [int(seed) + i for i in range(n)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != n:
-                raise ValueError(f"seed is a sequence of length {len(seeds)}: a list of seeds must have "
-                                 f"num_envs={n} entries")
+        seeds = _check_seeds(seed, n)
+        if options is not None and not isinstance(options, dict):
+            raise ValueError(f"options={options!r} is invalid: must be a dict or None")
         mask = np.ones(n, dtype=np.bool_)
         if options is not None and "reset_mask" in options:
             mask = options["reset_mask"]

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from auv_follow_env.layout import OBS_DIM
+from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1
 from auv_follow_env.params import TaskSpec
 
 __all__ = ["ScriptedPolicy", "FilteredDerivative", "wrap_to_pi", "sat"]
@@ -57,17 +57,18 @@ class FilteredDerivative:
 class ScriptedPolicy:
     """Base of the scripted controllers: an SB3-style policy over observations.
 
-    Subclasses implement :meth:`forces` (batched, (N, OBS_DIM) -> (N, 3) in N / N m),
+    Subclasses implement :meth:`forces` (batched, (N, W) -> (N, 3) in N / N m),
     :meth:`reference` (the reference point they generate, in the follower body frame) and
     :meth:`_reset_memory` (per-env memory where a mask is set).
 
-    ``predict`` accepts one observation (shape (16,)) or a batch (N, 16). Memory is reset
+    ``predict`` accepts one observation or a batch (N, width) of either layout (width 16
+    for v0, 20 for v1; :mod:`auv_follow_env.layout`). Memory is reset
     where ``episode_start`` is True; if ``episode_start`` is None, call :meth:`reset`
     at each new episode yourself (the first call always starts fresh).
     """
 
     name = "scripted"
-    obs_dim = OBS_DIM  #: width of the observations this policy reads
+    obs_dims: tuple[int, ...] = (OBS_DIM, OBS_DIM_V1)  #: observation widths this policy reads
 
     def __init__(self, spec: TaskSpec) -> None:
         if not isinstance(spec, TaskSpec):
@@ -89,9 +90,10 @@ class ScriptedPolicy:
         single = obs.ndim == 1
         if single:
             obs = obs[None, :]
-        if obs.ndim != 2 or obs.shape[1] != self.obs_dim:
-            raise ValueError(f"observation has shape {np.shape(observation)}: expected ({self.obs_dim},) "
-                             f"or (N, {self.obs_dim})")
+        if obs.ndim != 2 or obs.shape[1] not in self.obs_dims:
+            widths = " or ".join(str(w) for w in self.obs_dims)
+            raise ValueError(f"observation has shape {np.shape(observation)}: expected (W,) or (N, W) "
+                             f"with W = {widths}")
         n = obs.shape[0]
         if self._n != n:
             mask = np.ones(n, dtype=bool)
@@ -116,5 +118,5 @@ class ScriptedPolicy:
 
     def reference(self, observation: Any) -> np.ndarray:  # pragma: no cover
         """The reference (x, y, psi) this controller generates, relative to the follower in its
-        body frame, for observations (N, 16) -> (N, 3). Memoryless."""
+        body frame, for observations (N, W) -> (N, 3). Does not change the policy's memory."""
         raise NotImplementedError

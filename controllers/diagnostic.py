@@ -51,7 +51,7 @@ class PresentFeedforwardController(HierarchicalController):
     three extra entries appended by :class:`AppendPresentTargetVelocity`.
     """
 
-    obs_dim = OBS_DIM + 3
+    obs_dims = (OBS_DIM + 3,)
 
     def __init__(self, spec: TaskSpec, gains: Gains | None = None) -> None:
         super().__init__(spec, prediction=True, robust=True, gains=gains,

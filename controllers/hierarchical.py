@@ -3,6 +3,11 @@ outer loop (25)-(30) and inner robust loop (31)-(35).
 
 PROPOSED, ROBUST_ONLY and PRED_ONLY are this one law with Table 1's switches.
 
+On v1 observations (the acoustic-link layout, 20 fields) the predictor extrapolates over
+each packet's observed ``packet_age`` instead of the nominal tau, and until the first packet
+has arrived (``has_packet`` = 0) the law holds position: reference = the follower's own pose,
+zero desired velocity. On v0 observations nothing of this applies (bit-identical to before).
+
 Everything is computed in the follower's body frame with the follower at the origin and
 heading 0: the laws are equivariant under rotations and translations (K_p is a scalar
 gain), so this equals the paper's inertial-frame computation followed by R(psi)^T, eq. (27).
@@ -17,9 +22,11 @@ import numpy as np
 from auv_follow_env.layout import decode
 from auv_follow_env.params import TaskSpec
 from controllers.base import FilteredDerivative, ScriptedPolicy, sat, wrap_to_pi
+from controllers.disturbance import DisturbanceObserver
+from controllers.estimator import TargetEstimator
 
 __all__ = ["Gains", "HierarchicalController", "predict_target", "reference_point", "outer_loop",
-           "inner_loop"]
+           "inner_loop", "prediction_horizon", "no_packet_mask", "zero_where"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -52,12 +59,29 @@ def _rot(psi: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.
     return c * x - s * y, s * x + c * y
 
 
-def predict_target(o: dict[str, np.ndarray], tau: float, enabled: bool = True):
+def prediction_horizon(o: dict[str, np.ndarray], tau: float):
+    """How old the target fields are [s]: ``packet_age`` on a v1 observation, else tau (v0)."""
+    return o["packet_age"] if "packet_age" in o else tau
+
+
+def no_packet_mask(o: dict[str, np.ndarray]) -> np.ndarray | None:
+    """Envs with no packet yet (v1, ``has_packet`` = 0), or None on a v0 observation."""
+    return o["has_packet"] < 0.5 if "has_packet" in o else None
+
+
+def zero_where(values, mask: np.ndarray | None):
+    """Zero every array of ``values`` where ``mask`` is set (hold position without a packet)."""
+    if mask is None or not mask.any():
+        return values
+    return tuple(np.where(mask, 0.0, v) for v in values)
+
+
+def predict_target(o: dict[str, np.ndarray], tau, enabled: bool = True):
     """Eqs. (13)-(17): first-order extrapolation of the delayed target over tau.
 
     Args:
         o: decoded observation (body frame).
-        tau: delay [s].
+        tau: delay [s]: a number, or an array (N,) of per-env ages (v1 ``packet_age``).
         enabled: False gives eta_hat = eta_t(t - tau) (ROBUST_ONLY, Table 1).
 
     Returns:
@@ -120,35 +144,72 @@ class HierarchicalController(ScriptedPolicy):
         robust: robust terms rho sat(e/phi) in (32)-(34) on/off.
         gains: :class:`Gains`; defaults shared by all variants.
         name: label used in tables.
+        estimator: ours, not the paper's: a :class:`~controllers.estimator.TargetEstimator`
+            whose present estimate replaces the predictor (13)-(17) (``prediction`` is then
+            ignored); None (the paper's four) keeps eqs. (13)-(17).
+        disturbance_observer: ours, not the paper's: a
+            :class:`~controllers.disturbance.DisturbanceObserver` whose estimate is
+            subtracted from (32)-(34); None (the paper's four) leaves the law as printed.
     """
 
     def __init__(self, spec: TaskSpec, *, prediction: bool = True, robust: bool = True,
-                 gains: Gains | None = None, name: str | None = None) -> None:
+                 gains: Gains | None = None, name: str | None = None,
+                 estimator: TargetEstimator | None = None,
+                 disturbance_observer: DisturbanceObserver | None = None) -> None:
         super().__init__(spec)
+        if estimator is not None and not isinstance(estimator, TargetEstimator):
+            raise ValueError(f"estimator={estimator!r} is invalid: must be a TargetEstimator or None")
+        if disturbance_observer is not None and not isinstance(disturbance_observer, DisturbanceObserver):
+            raise ValueError(f"disturbance_observer={disturbance_observer!r} is invalid: must be a "
+                             f"DisturbanceObserver or None")
         self.prediction = bool(prediction)
         self.robust = bool(robust)
         self.gains = gains if gains is not None else Gains()
         self.name = name or f"hierarchical(prediction={self.prediction}, robust={self.robust})"
+        self.estimator = estimator
+        self.disturbance_observer = disturbance_observer
         self._diff = FilteredDerivative(spec.dt, self.gains.derivative_tc)
 
     def _generate(self, o: dict[str, np.ndarray]):
-        pred = predict_target(o, self.spec.delay_s, self.prediction)
+        pred = predict_target(o, prediction_horizon(o, self.spec.delay_s), self.prediction)
         ref = reference_point(pred[0], pred[1], pred[2], self.spec.p_d, self.spec.psi_d)
-        return pred, ref
+        return pred, zero_where(ref, no_packet_mask(o))
+
+    def _estimate(self, obs: np.ndarray, reset_mask: np.ndarray | None, commit: bool):
+        """Prediction and reference from the estimator (holding position without a fix)."""
+        est = self.estimator.step(obs, reset_mask, commit=commit, with_cov=False)
+        pred = est.as_prediction()
+        hold = ~est.valid
+        ref = reference_point(pred[0], pred[1], pred[2], self.spec.p_d, self.spec.psi_d)
+        return pred, zero_where(ref, hold), hold
 
     def reference(self, observation) -> np.ndarray:
-        o = decode(np.atleast_2d(observation))
+        obs = np.atleast_2d(observation)
+        if self.estimator is not None:
+            _, ref, _ = self._estimate(np.asarray(obs, dtype=np.float64), None, commit=False)
+            return np.stack(ref, axis=-1)
+        o = decode(obs)
         _, ref = self._generate(o)
         return np.stack(ref, axis=-1)
 
     def forces(self, obs: np.ndarray, reset_mask: np.ndarray) -> np.ndarray:
         o = decode(obs)
-        pred, ref = self._generate(o)
-        desired = outer_loop(ref, pred, self.spec.p_d, self.gains)
+        if self.estimator is None:
+            pred, ref = self._generate(o)
+            hold = no_packet_mask(o)
+        else:
+            pred, ref, hold = self._estimate(obs, reset_mask, commit=True)
+        desired = zero_where(outer_loop(ref, pred, self.spec.p_d, self.gains), hold)
         d = np.stack(desired, axis=-1)
         if reset_mask.any() or self._diff.prev is None:
             self._diff.reset(reset_mask, d)
         d_dot = self._diff(d)
         F = inner_loop(o, desired, (d_dot[:, 0], d_dot[:, 1], d_dot[:, 2]), self.spec.nominal,
                        self.gains, self.robust)
-        return np.stack(F, axis=-1)
+        F = np.stack(F, axis=-1)
+        dob = self.disturbance_observer
+        if dob is not None:
+            nu = np.stack([o["u"], o["v"], o["r"]], axis=-1)
+            F = F - dob.update(nu, np.stack([o["current_u"], o["current_v"]], axis=-1), reset_mask)
+            dob.applied(F)
+        return F

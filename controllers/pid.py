@@ -5,7 +5,8 @@ The paper gives no structure or gains; ours (NOTES.md suggested values): the pos
 error to the *delayed* reference e_I = p_ref - p, in the inertial frame, drives a PID per
 axis whose output force is rotated into the body axes; heading has its own PID on
 wrapToPi(psi_ref - psi). Derivatives are filtered (time constant 0.05 s); the integral is
-a forward sum.
+a forward sum. On a v1 observation without a packet yet (``has_packet`` = 0) the reference
+is the follower's own pose (hold position).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 from auv_follow_env.layout import decode
 from auv_follow_env.params import TaskSpec
 from controllers.base import FilteredDerivative, ScriptedPolicy, wrap_to_pi
-from controllers.hierarchical import predict_target, reference_point
+from controllers.hierarchical import no_packet_mask, predict_target, reference_point, zero_where
 
 __all__ = ["PIDGains", "PIDController"]
 
@@ -54,7 +55,8 @@ class PIDController(ScriptedPolicy):
     def reference(self, observation) -> np.ndarray:
         o = decode(np.atleast_2d(observation))
         pred = predict_target(o, self.spec.delay_s, enabled=False)
-        return np.stack(reference_point(pred[0], pred[1], pred[2], self.spec.p_d, self.spec.psi_d), axis=-1)
+        ref = reference_point(pred[0], pred[1], pred[2], self.spec.p_d, self.spec.psi_d)
+        return np.stack(zero_where(ref, no_packet_mask(o)), axis=-1)
 
     def forces(self, obs: np.ndarray, reset_mask: np.ndarray) -> np.ndarray:
         o = decode(obs)

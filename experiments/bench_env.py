@@ -33,7 +33,7 @@ import numpy as np
 
 import auv_follow_env  # noqa: F401  (registers the ids)
 
-ENVS = ("AUVFollow-S4-v0", "Pendulum-v1")
+ENVS = ("AUVFollow-S4-v0", "AUVFollow-Hard-v1", "Pendulum-v1")
 ROOT = Path(__file__).resolve().parents[1]
 
 _FIRST_CALL = r"""
@@ -114,9 +114,10 @@ def main(argv: list[str] | None = None) -> str:
         cold = first_call(cache)
         warm = first_call(cache)
 
-    auv, pend = rates["AUVFollow-S4-v0"], rates["Pendulum-v1"]
+    auv, hard, pend = rates["AUVFollow-S4-v0"], rates["AUVFollow-Hard-v1"], rates["Pendulum-v1"]
+    ratio_hard = statistics.median(hard) / statistics.median(pend)
     lines = [
-        "# Single-env speed: AUVFollow-S4-v0 vs Pendulum-v1",
+        "# Single-env speed: AUVFollow-S4-v0 and AUVFollow-Hard-v1 vs Pendulum-v1",
         "",
         f"`python experiments/bench_env.py --steps {args.steps} --repeats {args.repeats}`; "
         f"Python {platform.python_version()}, numpy {np.__version__}, gymnasium {gym.__version__}, "
@@ -138,6 +139,9 @@ def main(argv: list[str] | None = None) -> str:
     lines += [
         "",
         f"AUVFollow-S4-v0 / Pendulum-v1 (median): {statistics.median(auv) / statistics.median(pend):.2f}",
+        "",
+        f"AUVFollow-Hard-v1 / Pendulum-v1 (median): {ratio_hard:.2f} (goal >= 2): "
+        f"{'met' if ratio_hard >= 2 else 'MISSED'}",
         "",
         "First call in a fresh interpreter (AUVFollow-S4-v0; seconds):",
         "",

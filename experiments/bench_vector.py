@@ -36,6 +36,7 @@ from auv_follow_env.sim import BatchSim
 @dataclass
 class Args:
     env_id: str = "AUVFollow-S4-v0"  #: the AUVFollow id benchmarked
+    tier_id: str = "AUVFollow-Hard-v1"  #: the v1 id timed beside it (native, single-threaded)
     sizes: list[int] = field(default_factory=lambda: [1, 64, 1024, 4096])  #: numbers of envs N
     budget: float = 1.0  #: seconds of timed stepping per cell (after one warm-up step)
     max_sync_envs: int = 4096  #: skip SyncVectorEnv above this N (building it is slow)
@@ -47,15 +48,17 @@ class Args:
 #: goals at the largest N: (label, numerator column, denominator column, minimum ratio)
 GOALS = (("native / SyncVectorEnv", "native", "sync", 50.0),
          ("native / CartPole native", "native", "cartpole", 0.5),
-         ("native / bare kernel (>= 0.5 means step <= 2x kernel)", "native", "kernel", 0.5))
+         ("native / bare kernel (>= 0.5 means step <= 2x kernel)", "native", "kernel", 0.5),
+         ("v1 tier native / v0 native", "tier", "native", 0.7))
 COLUMNS = {"native": "AUVFollow native", "sync": "AUVFollow SyncVectorEnv",
            "cartpole": "CartPole-v1 native", "kernel": "bare kernel (integrate)",
-           "parallel": "AUVFollow native, parallel=True"}
+           "parallel": "AUVFollow native, parallel=True", "tier": "v1 tier native"}
 
 
 def parse_args(argv: list[str] | None = None) -> Args:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--env-id", default=Args.env_id, help="AUVFollow id (default %(default)s)")
+    p.add_argument("--tier-id", default=Args.tier_id, help="v1 id timed beside it (default %(default)s)")
     p.add_argument("--sizes", type=int, nargs="+", default=Args().sizes, help="numbers of envs")
     p.add_argument("--budget", type=float, default=Args.budget, help="timed seconds per cell")
     p.add_argument("--max-sync-envs", type=int, default=Args.max_sync_envs,
@@ -102,6 +105,11 @@ def bench_size(args: Args, n: int, rng: np.random.Generator) -> dict[str, float]
     row["native"] = rate(lambda j: venv.step(act(j)), n, args.budget)
     venv.close()
 
+    tenv = gym.make_vec(args.tier_id, num_envs=n, vectorization_mode="vector_entry_point")
+    tenv.reset(seed=args.seed)
+    row["tier"] = rate(lambda j: tenv.step(act(j)), n, args.budget)
+    tenv.close()
+
     if n <= args.max_sync_envs:
         senv = gym.make_vec(args.env_id, num_envs=n, vectorization_mode="sync")
         senv.reset(seed=args.seed)
@@ -138,7 +146,7 @@ def fmt(x: float) -> str:
 
 
 def report(args: Args, rows: dict[int, dict[str, float]], load: str) -> str:
-    lines = [f"# Vector env speed: {args.env_id}, env-steps/s", "",
+    lines = [f"# Vector env speed: {args.env_id} (and {args.tier_id}), env-steps/s", "",
              f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python "
              f"{platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}, gymnasium "
              f"{gym.__version__}; {args.budget} s per cell after a warm-up step; load average before the run "

@@ -102,3 +102,31 @@ def test_many_seed_statistics_cover_every_cell(tmp_path):
     ci = pd.read_csv(tmp_path / "tables_seeds.csv")
     assert len(ci) == 96 * 2  # every cell of Tables 4-7, for both references
     assert (ci.n == 3).all() and (ci.ci95 >= 0).all()
+
+
+def test_baselines_script_writes_its_table_and_figure(tmp_path):
+    from experiments.baselines import main as baselines_main
+
+    s = baselines_main(["--out", str(tmp_path), "--seeds", "2", "--tier-seeds", "2", "--episode-s", "1",
+                        "--controllers", "PROPOSED", "PROPOSED_KF_DOB", "--no-progress"])
+    for f in ("baselines.md", "baselines.csv", "baselines.png"):
+        assert (tmp_path / f).stat().st_size > 0
+    assert set(s["env_id"]) == {f"AUVFollow-{x}-v0" for x in ("S1", "S2", "S3", "S4")} | {
+        f"AUVFollow-{t}-v1" for t in ("Easy", "Medium", "Hard", "Extreme")}
+    text = (tmp_path / "baselines.md").read_text()
+    assert "**PROPOSED_KF_DOB** (ours)" in text and "seeds 3000000-3000001" in text
+
+
+def test_baselines_script_refuses_tuning_seeds(capsys):
+    from experiments.baselines import main as baselines_main
+
+    with pytest.raises(SystemExit):
+        baselines_main(["--seeds", "120"])
+    assert "tuning seeds" in capsys.readouterr().err
+
+
+def test_bench_mpc_script_writes_its_table(tmp_path):
+    from experiments.bench_mpc import main as bench_main
+
+    text = bench_main(["--episodes", "1", "--episode-s", "1", "--out", str(tmp_path / "b.md")])
+    assert "solve median" in text and (tmp_path / "b.md").exists()

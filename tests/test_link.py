@@ -442,3 +442,19 @@ def test_overrides_fix_or_redraw_a_tier_field():
     assert (lat >= 1.0).all() and (lat <= 1.1).all()
     # numpy scalars are numbers too
     gym.make("AUVFollow-Hard-v1", loss_prob=np.float32(0.1), fix_sigma_m=np.float64(0.02))
+
+
+# --- docs ----------------------------------------------------------------------------------
+
+def test_docs_tier_table_is_the_generated_one_and_snippets_run():
+    from pathlib import Path
+
+    from auv_follow_env.tiers import tier_summary_markdown
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "tiers.md").read_text()
+    block = text.split("<!-- tier-summary")[1].split("-->", 1)[1].split("<!-- /tier-summary -->")[0]
+    assert block.strip() == tier_summary_markdown().strip()
+    for code in text.split("```python")[1:]:
+        code = code.split("```")[0]
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
