@@ -250,6 +250,7 @@ class PolicySpec:
     kind: str  #: "classical" (scripted controller) or "learned"
     controller: str | None = None  #: controller name (classical)
     runs: tuple[str, ...] = ()  #: run directories (learned; one per training seed)
+    tiers: tuple[str, ...] = ()  #: the tiers it is scored on (empty: every benchmarked tier)
 
 
 def _controllers() -> tuple[str, ...]:
@@ -265,7 +266,8 @@ def _is_run(p: Path) -> bool:
 
 def parse_policy(item: str | Path | PolicySpec) -> PolicySpec:
     """A :class:`PolicySpec` from a controller name, a run directory, a directory of runs
-    (one method, its runs = training seeds) or ``"label=run_a,run_b"``.
+    (one method, its runs = training seeds) or ``"label=run_a,run_b"``; a suffix
+    ``@Tier[+Tier]`` scores it on those tiers only (e.g. an expensive ``MPC@Hard``).
 
     Raises:
         ValueError: the item is none of these (names the valid controllers).
@@ -273,6 +275,12 @@ def parse_policy(item: str | Path | PolicySpec) -> PolicySpec:
     if isinstance(item, PolicySpec):
         return item
     text = str(item)
+    if "@" in text and not Path(text).exists():
+        base, _, only = text.rpartition("@")
+        tiers = tuple(resolve_tier(t)[0] for t in only.split("+") if t)
+        if not tiers:
+            raise ValueError(f"policy={text!r} is invalid: give tiers after '@', e.g. MPC@Hard or MPC@Hard+Extreme")
+        return dataclasses.replace(parse_policy(base), tiers=tiers)
     if text in _controllers():
         return PolicySpec(label=text, kind="classical", controller=text)
     label = None
@@ -407,6 +415,8 @@ def evaluate_tier(policies: Sequence[PolicySpec], tier: str, seeds: Sequence[int
     probe.close()
     entries, objs = [], []
     for spec in policies:
+        if spec.tiers and name not in spec.tiers:
+            continue
         try:
             built = [(run, build_policy(spec, run, env_id, task_spec, obs_width)) for run in (spec.runs or (None,))]
         except IncompatiblePolicy as exc:

@@ -167,6 +167,15 @@ def test_cli_writes_every_result_file_with_its_provenance(tmp_path, capsys):
     assert len(episodes) == 6 and set(episodes["seed"]) == {1000, 1001, 1002}
 
 
+def test_tier_restriction_scores_a_policy_on_its_tiers_only():
+    spec = parse_policy("PID@S2")
+    assert spec.tiers == ("S2",) and spec.controller == "PID"
+    df = evaluate_tier([spec, parse_policy("PROPOSED")], "S1", [1000], progress=False)
+    assert list(df["policy"]) == ["PROPOSED"]
+    with pytest.raises(ValueError, match="tier='S9'"):
+        parse_policy("PID@S9")
+
+
 def test_cli_rejects_unknown_tier(capsys):
     with pytest.raises(SystemExit):
         main(["benchmark", "--tiers", "S9", "--no-progress"])
