@@ -390,12 +390,55 @@ def _max_distance(env_id: str) -> float:
     return float(getattr(cfg, "max_distance_m", math.nan))
 
 
+#: the code that decides an episode's numbers (the cache key includes its git hashes)
+_EPISODE_CODE = ("auv_follow_env", "controllers", "agents/residual.py", "agents/train.py")
+
+
+def _code_fingerprint() -> str | None:
+    """Git hashes of :data:`_EPISODE_CODE` at HEAD, or None if any of it differs from HEAD
+    (then nothing is cached)."""
+    import subprocess
+
+    root = Path(__file__).resolve().parent.parent
+    try:
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", *_EPISODE_CODE], cwd=root, capture_output=True,
+                               text=True, timeout=30)
+        if dirty.returncode != 0 or dirty.stdout.strip():
+            return None
+        out = subprocess.run(["git", "rev-parse", *[f"HEAD:{p}" for p in _EPISODE_CODE]], cwd=root,
+                             capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip().replace("\n", ",") if out.returncode == 0 else None
+
+
+def _entry_key(spec: PolicySpec, run: str | None, env_id: str, seeds: Sequence[int], code: str) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    h.update(json.dumps({"env_id": env_id, "seeds": [int(x) for x in seeds], "kind": spec.kind,
+                         "controller": spec.controller, "label": spec.label, "code": code,
+                         "numpy": np.__version__}).encode())
+    if run is not None:
+        for f in ("model.zip", "vecnormalize.pkl", "config.yaml"):
+            fp = Path(run) / f
+            if fp.is_file():
+                h.update(fp.read_bytes())
+    return h.hexdigest()[:32]
+
+
 def evaluate_tier(policies: Sequence[PolicySpec], tier: str, seeds: Sequence[int] | None = None, *,
-                  batched: bool = True, progress: bool = True, skip_incompatible: bool = True) -> pd.DataFrame:
+                  batched: bool = True, progress: bool = True, skip_incompatible: bool = True,
+                  cache_dir: str | Path | None = None) -> pd.DataFrame:
     """Per-episode rows of every run of every policy on one tier's seeds.
 
     A policy that cannot run on the tier (:class:`IncompatiblePolicy`, e.g. a v1-trained
     agent on a v0 scenario) is left out with a warning (``skip_incompatible``) or raises.
+
+    With ``cache_dir``, each run's episodes are stored under a key of (env id, seeds, policy,
+    the run's model files, the git hashes of the episode code) and reused on a later call;
+    nothing is cached while that code differs from the git HEAD. Episodes are deterministic,
+    so a cached and a fresh evaluation agree.
 
     All runs share one native vector env (:func:`controllers.evaluation.evaluate_batched`)
     unless ``batched`` is False (one single-env episode at a time, same numbers).
@@ -429,11 +472,27 @@ def evaluate_tier(policies: Sequence[PolicySpec], tier: str, seeds: Sequence[int
     if not entries:
         raise ValueError(f"tier={tier!r}: none of the policies can run on {env_id}")
     labels = [spec.label for spec, _ in entries]
-    if batched:
-        df = evaluate_batched(objs, env_id, seeds, policy_names=labels, progress=progress)
-    else:
-        df = pd.concat([evaluate(o, env_id, seeds, policy_name=lab, progress=progress)
-                        for o, lab in zip(objs, labels, strict=True)], ignore_index=True)
+    code = _code_fingerprint() if cache_dir is not None else None
+    keys = [_entry_key(spec, run, env_id, seeds, code) if code else None for spec, run in entries]
+    cached: dict[int, pd.DataFrame] = {}
+    if code:
+        for i, k in enumerate(keys):
+            f = Path(cache_dir) / f"{k}.parquet"
+            if f.is_file():
+                cached[i] = pd.read_parquet(f)
+    todo = [i for i in range(len(entries)) if i not in cached]
+    fresh: dict[int, pd.DataFrame] = {}
+    if todo and batched:
+        out = evaluate_batched([objs[i] for i in todo], env_id, seeds, policy_names=[labels[i] for i in todo],
+                               progress=progress)
+        fresh = {i: out.iloc[j * len(seeds):(j + 1) * len(seeds)].reset_index(drop=True) for j, i in enumerate(todo)}
+    elif todo:
+        fresh = {i: evaluate(objs[i], env_id, seeds, policy_name=labels[i], progress=progress) for i in todo}
+    if code:
+        Path(cache_dir).mkdir(parents=True, exist_ok=True)
+        for i, d in fresh.items():
+            d.to_parquet(Path(cache_dir) / f"{keys[i]}.parquet", index=False)
+    df = pd.concat([cached[i] if i in cached else fresh[i] for i in range(len(entries))], ignore_index=True)
     df.insert(0, "env_id", env_id)
     df.insert(0, "tier", name)
     df.insert(df.columns.get_loc("policy") + 1, "kind", np.repeat([s.kind for s, _ in entries], len(seeds)))
@@ -667,7 +726,8 @@ def load_result(out_dir: str | Path) -> BenchmarkResult:
 def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: Iterable[str] = ("S4",), *,
               seeds: Mapping[str, Sequence[int]] | Sequence[int] | None = None, out_dir: str | Path | None = None,
               n_resamples: int = DEFAULT_RESAMPLES, bootstrap_seed: int = DEFAULT_BOOTSTRAP_SEED,
-              batched: bool = True, progress: bool = True, command: str | None = None) -> BenchmarkResult:
+              batched: bool = True, progress: bool = True, command: str | None = None,
+              cache_dir: str | Path | None = None) -> BenchmarkResult:
     """Score ``policies`` on ``tiers`` and build the leaderboard.
 
     Args:
@@ -681,6 +741,7 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
         n_resamples, bootstrap_seed: bootstrap settings (fixed seed: reruns agree).
         batched: evaluate through the native vector env.
         command: the command line to record (the CLI fills it in).
+        cache_dir: reuse the episodes of runs evaluated before (see :func:`evaluate_tier`).
 
     Raises:
         ValueError: unknown tier or policy, bad seeds.
@@ -706,14 +767,15 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
             seed_map[t] = list(seeds[t]) if t in seeds else tier_test_seeds(t)
         else:
             seed_map[t] = list(seeds)
-    frames = [evaluate_tier(specs, t, seed_map[t], batched=batched, progress=progress)
+    frames = [evaluate_tier(specs, t, seed_map[t], batched=batched, progress=progress, cache_dir=cache_dir)
               for t in tqdm(tiers, desc="tiers", disable=not progress)]
     episodes = pd.concat(frames, ignore_index=True)
     board = leaderboard(episodes, n_resamples=n_resamples, seed=bootstrap_seed, progress=progress)
     config = {"command": command, "tiers": {t: resolve_tier(t)[1] for t in tiers}, "seeds": seed_map,
               "policies": [dataclasses.asdict(s) for s in specs], "metrics": list(LEADERBOARD_METRICS),
               "n_resamples": n_resamples, "bootstrap_seed": bootstrap_seed, "confidence": 0.95,
-              "batched": batched, "published_seeds": seeds is None}
+              "batched": batched, "published_seeds": seeds is None,
+              "cache_dir": None if cache_dir is None else str(cache_dir)}
     prov = provenance(config)
     result = BenchmarkResult(episodes, board, prov)
     if out_dir is not None:

@@ -194,6 +194,8 @@ def _add_benchmark_commands(sub: Any) -> None:
     b.add_argument("--bootstrap-seed", type=int, default=0)
     b.add_argument("--unbatched", dest="batched", action="store_false",
                    help="one single-env episode at a time instead of one native vector env")
+    b.add_argument("--cache", dest="cache_dir", default=None,
+                   help="directory of per-run episode caches (reused while the episode code equals git HEAD)")
     b.add_argument("--no-progress", dest="progress", action="store_false")
     b.set_defaults(handler=_cmd_benchmark)
 
@@ -224,6 +226,7 @@ def _cmd_benchmark(args: argparse.Namespace) -> None:
 
     res = benchmark(args.policies, args.tiers, seeds=args.seeds, out_dir=args.out, n_resamples=args.resamples,
                     bootstrap_seed=args.bootstrap_seed, batched=args.batched, progress=args.progress,
+                    cache_dir=args.cache_dir,
                     command="auv-follow " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["benchmark"] else None)
     print(res.files["leaderboard_md"].read_text() if res.files else res.leaderboard.to_string())
     if "Hard" in set(res.leaderboard["tier"]):

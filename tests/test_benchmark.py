@@ -176,6 +176,21 @@ def test_tier_restriction_scores_a_policy_on_its_tiers_only():
         parse_policy("PID@S9")
 
 
+def test_cache_reuses_episodes_only_for_committed_code(tmp_path):
+    from agents.benchmark import _code_fingerprint
+
+    specs = [parse_policy("PID"), parse_policy("PROPOSED")]
+    a = evaluate_tier(specs, "S1", [1000], progress=False, cache_dir=tmp_path)
+    files = sorted(tmp_path.glob("*.parquet"))
+    if _code_fingerprint() is None:  # episode code differs from git HEAD: nothing may be cached
+        assert not files
+        return
+    assert len(files) == 2
+    b = evaluate_tier(specs[::-1], "S1", [1000], progress=False, cache_dir=tmp_path)
+    assert len(sorted(tmp_path.glob("*.parquet"))) == 2
+    pd.testing.assert_frame_equal(a.set_index("policy").sort_index(), b.set_index("policy").sort_index())
+
+
 def test_cli_rejects_unknown_tier(capsys):
     with pytest.raises(SystemExit):
         main(["benchmark", "--tiers", "S9", "--no-progress"])
