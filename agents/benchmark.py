@@ -21,8 +21,9 @@ and the HTML report all call :func:`benchmark` / :func:`leaderboard`):
   ``max_distance_m`` (the loss threshold) on every error metric - it is at least that bad.
 * **Aggregates** per (tier, policy): IQM (interquartile mean, 25 % trimmed on each side,
   as rliable) and mean, each with a 95 % percentile **stratified bootstrap** CI (strata =
-  the group's training runs, episodes resampled within each run; one stratum for a scripted
-  controller), ``scipy.stats.bootstrap`` with a fixed seed so a rerun gives the same numbers;
+  the group's training runs; one stratum for a scripted controller; the runs share the test
+  seeds, so one draw of seed indices resamples every run alike), ``scipy.stats.bootstrap``
+  with a fixed seed so a rerun gives the same numbers;
   termination rate; and the **probability of improvement** over the tier's best classical
   baseline (the scripted controller with the lowest steady-state IQM), rliable's definition
   for lower-is-better scores: P(X < Y) + P(X = Y) / 2 over all pairs of episodes, with a
@@ -86,12 +87,17 @@ _STATISTICS: dict[str, Callable[..., np.ndarray]] = {"iqm": iqm, "mean": _mean}
 
 def stratified_bootstrap_ci(strata: Sequence[Sequence[float]], statistic: str | Callable = "iqm", *,
                             confidence: float = 0.95, n_resamples: int = DEFAULT_RESAMPLES,
-                            seed: int = DEFAULT_BOOTSTRAP_SEED) -> tuple[float, float, float]:
+                            seed: int = DEFAULT_BOOTSTRAP_SEED, paired: bool | None = None
+                            ) -> tuple[float, float, float]:
     """Point estimate and percentile-bootstrap CI of ``statistic`` over the pooled strata.
 
-    Each stratum is resampled with replacement independently (its size kept), the resampled
-    strata are pooled and the statistic is taken over the pool (rliable's stratified
-    bootstrap over runs, with ``scipy.stats.bootstrap`` doing the resampling).
+    Each stratum is resampled with replacement (its size kept), the resampled strata are
+    pooled and the statistic is taken over the pool (rliable's stratified bootstrap, with
+    ``scipy.stats.bootstrap`` doing the resampling). With ``paired`` the strata are aligned
+    (entry j of every stratum is the same test seed) and one draw of indices is applied to all
+    of them: the test seed, not the episode, is the unit resampled - several training runs
+    scored on the same seeds do not count as independent conditions. ``None``: paired when
+    there are several strata of equal length.
 
     Args:
         strata: one 1-D sequence of scores per stratum (e.g. per training run).
@@ -125,12 +131,16 @@ def stratified_bootstrap_ci(strata: Sequence[Sequence[float]], statistic: str | 
     if pooled.size == 1 or np.all(pooled == pooled[0]):
         return est, est, est
     resampled = tuple(a for a in arrays)
+    if paired is None:
+        paired = len(arrays) > 1 and len({a.size for a in arrays}) == 1
+    if paired and len({a.size for a in arrays}) != 1:
+        raise ValueError(f"paired=True needs strata of equal length, got sizes {[a.size for a in arrays]}")
 
     def pooled_stat(*samples: np.ndarray, axis: int = -1) -> np.ndarray:
         return statistic(np.concatenate(samples, axis=axis), axis=axis)
 
     res = stats.bootstrap(resampled, pooled_stat, n_resamples=int(n_resamples), confidence_level=confidence,
-                          method="percentile", vectorized=True, paired=False, axis=-1, batch=1000,
+                          method="percentile", vectorized=True, paired=bool(paired), axis=-1, batch=1000,
                           rng=np.random.default_rng(seed))
     lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
     return est, lo, hi
@@ -543,6 +553,7 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
     rows = []
     groups = list(episodes.groupby(["tier", "policy"], sort=False))
     for (tier, pol), d in tqdm(groups, desc="leaderboard", disable=not progress, leave=False):
+        d = d.sort_values(["run", "seed"], kind="stable")  # strata aligned by test seed
         row: dict[str, Any] = {"tier": tier, "policy": pol, "kind": d["kind"].iloc[0],
                                "runs": int(d["run"].nunique()), "episodes": len(d)}
         for m in metrics:

@@ -58,6 +58,19 @@ def test_stratified_bootstrap_keeps_stratum_sizes():
     assert est == lo == hi == pytest.approx(15 / 20)
 
 
+def test_paired_bootstrap_resamples_test_seeds_not_episodes():
+    # two runs with identical scores on the same seeds carry the information of one run: the
+    # seed-paired CI equals the CI of a single run (an unpaired one would be narrower)
+    x = np.random.default_rng(1).normal(size=40)
+    one = stratified_bootstrap_ci([x], "mean", n_resamples=3000, seed=3)
+    two = stratified_bootstrap_ci([x, x], "mean", n_resamples=3000, seed=3)
+    unpaired = stratified_bootstrap_ci([x, x], "mean", n_resamples=3000, seed=3, paired=False)
+    assert two == pytest.approx(one)
+    assert unpaired[2] - unpaired[1] < 0.85 * (one[2] - one[1])
+    with pytest.raises(ValueError, match="paired=True needs strata of equal length"):
+        stratified_bootstrap_ci([x, x[:10]], paired=True)
+
+
 def test_bootstrap_is_reproducible_and_brackets_the_estimate():
     x = np.random.default_rng(0).lognormal(size=50)
     a = stratified_bootstrap_ci([x[:25], x[25:]], "iqm", n_resamples=2000, seed=7)
