@@ -222,12 +222,14 @@ def _add_benchmark_commands(sub: Any) -> None:
 
 
 def _cmd_benchmark(args: argparse.Namespace) -> None:
+    import shlex
+
     from agents.benchmark import benchmark, goal_check
 
     res = benchmark(args.policies, args.tiers, seeds=args.seeds, out_dir=args.out, n_resamples=args.resamples,
                     bootstrap_seed=args.bootstrap_seed, batched=args.batched, progress=args.progress,
                     cache_dir=args.cache_dir,
-                    command="auv-follow " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["benchmark"] else None)
+                    command="auv-follow " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["benchmark"] else None)
     print(res.files["leaderboard_md"].read_text() if res.files else res.leaderboard.to_string())
     if "Hard" in set(res.leaderboard["tier"]):
         print(goal_check(res.leaderboard))
