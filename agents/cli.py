@@ -6,12 +6,22 @@ Examples::
     auv-follow train --algo sac --mode scratch --timesteps 100000 --env-kwarg disturbance=L1
     auv-follow train --algo ppo --resume runs/<run>/checkpoints/model_500000_steps.zip --timesteps 3000000
     auv-follow evaluate runs/<run> --seeds 1000-1009
-    auv-follow compare runs/<run-a> runs/<run-b> --seeds 1000-1009 --out results/compare
+    auv-follow compare runs/<run-a> runs/<run-b> --seeds 1000-1009 --out results/tmp/compare
+
+Every setting is checked before any work starts or any directory is created; a bad one ends
+with a one-line error naming the argument (exit code 2). Ctrl-C during training saves the
+model and its statistics and exits with code 130.
+
+Trust: run directories and model files from others must be trusted like code. Evaluation
+reads the observation statistics from plain JSON (``vecnormalize.json``), but an SB3
+``model.zip`` can hold pickled objects, and ``--resume`` unpickles ``vecnormalize.pkl``.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -21,19 +31,50 @@ import yaml
 
 import auv_follow_env
 from agents.residual import DEFAULT_CONTROLLER, DEFAULT_HISTORY_LEN, DEFAULT_HISTORY_STRIDE, DEFAULT_SCALE
-from agents.train import ALGOS, MODES, TrainConfig
+from agents.train import ALGOS, MAX_N_ENVS, MODES, ConfigError, TrainConfig, TrainingInterrupted
 
 __all__ = ["main", "build_parser"]
 
+#: TrainConfig field -> command-line flag (for errors found after parsing)
+FLAGS: dict[str, str] = {
+    "algo": "--algo", "env_id": "--env", "env_kwargs": "--env-kwarg", "mode": "--mode", "controller": "--controller",
+    "scale": "--scale", "include_base_action": "--no-base-action", "history_len": "--history-len",
+    "history_stride": "--history-stride", "total_timesteps": "--timesteps", "max_minutes": "--max-minutes",
+    "seed": "--seed", "n_envs": "--n-envs", "vec": "--vec", "out_dir": "--out", "run_name": "--run-name",
+    "checkpoint_freq": "--checkpoint-freq", "eval_freq": "--eval-freq", "eval_episodes": "--eval-episodes",
+    "eval_seed": "--eval-seed", "resume_from": "--resume", "hyperparams_file": "--hyperparams",
+    "hyperparams": "--hp", "verbose": "--verbose"}
 
-def _positive_int(text: str) -> int:
+_TRUST = ("Run directories and model files from others must be trusted like code: an SB3 model.zip can hold "
+          "pickled objects (and --resume unpickles vecnormalize.pkl). Evaluation reads the observation statistics "
+          "only from vecnormalize.json.")
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Keeps the description's line breaks and shows every argument's default."""
+
+
+def _integer(text: str, lo: int, hi: float = math.inf) -> int:
     try:
-        v = int(float(text))
+        f = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if v <= 0 or v != float(text):
-        raise argparse.ArgumentTypeError(f"{text!r} is invalid: must be a positive integer")
-    return v
+    if not math.isfinite(f) or not f.is_integer() or not lo <= f <= hi:
+        bound = f">= {lo}" if hi == math.inf else f"in [{lo}, {hi:g}]"
+        raise argparse.ArgumentTypeError(f"{text!r} is invalid: must be an integer {bound}")
+    return int(f)
+
+
+def _positive_int(text: str) -> int:
+    return _integer(text, 1)
+
+
+def _nonneg_int(text: str) -> int:
+    return _integer(text, 0)
+
+
+def _n_envs(text: str) -> int:
+    return _integer(text, 1, MAX_N_ENVS)
 
 
 def _positive_float(text: str) -> float:
@@ -41,9 +82,12 @@ def _positive_float(text: str) -> float:
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is invalid: must be > 0")
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is invalid: must be a finite number > 0")
     return v
+
+
+MAX_SEEDS = 100_000  #: bound of the number of seeds of one --seeds argument
 
 
 def _seeds(text: str) -> list[int]:
@@ -53,13 +97,16 @@ def _seeds(text: str) -> list[int]:
         for part in text.split(","):
             if "-" in part.strip()[1:]:
                 a, b = part.split("-")
-                out.extend(range(int(a), int(b) + 1))
+                a, b = int(a), int(b)
+                if b - a >= MAX_SEEDS:
+                    raise argparse.ArgumentTypeError(f"{text!r} gives more than {MAX_SEEDS} seeds")
+                out.extend(range(a, b + 1))
             else:
                 out.append(int(part))
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a seed list: use e.g. 1000-1009 or 1,2,3") from None
-    if not out or min(out) < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} gives no non-negative seeds")
+    if not out or min(out) < 0 or len(out) > MAX_SEEDS:
+        raise argparse.ArgumentTypeError(f"{text!r} gives no seeds or a negative one: use e.g. 1000-1009 or 1,2,3")
     return out
 
 
@@ -67,72 +114,172 @@ def _key_value(text: str) -> tuple[str, Any]:
     if "=" not in text:
         raise argparse.ArgumentTypeError(f"{text!r} is not key=value")
     k, v = text.split("=", 1)
-    return k.strip(), yaml.safe_load(v)
+    if not k.strip():
+        raise argparse.ArgumentTypeError(f"{text!r} has an empty key")
+    try:
+        return k.strip(), yaml.safe_load(v)
+    except yaml.YAMLError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r}: the value is not valid YAML ({' '.join(str(exc).split())})") \
+            from None
 
 
 def build_parser() -> argparse.ArgumentParser:
     from controllers import ALL_CONTROLLERS
 
-    p = argparse.ArgumentParser(prog="auv-follow", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="auv-follow", description=__doc__, formatter_class=_Formatter)
     sub = p.add_subparsers(dest="command", required=True)
 
-    t = sub.add_parser("train", help="train a PPO/SAC/TD3 agent (from scratch or residual)")
-    t.add_argument("--algo", choices=ALGOS, default="ppo")
-    t.add_argument("--env", dest="env_id", choices=auv_follow_env.ENV_IDS, default="AUVFollow-S4-v0")
+    t = sub.add_parser("train", help="train a PPO/SAC/TD3 agent (from scratch or residual)", formatter_class=_Formatter,
+                       description="Train a PPO/SAC/TD3 agent on AUVFollow, from scratch or as a residual on a "
+                                   "controller; everything is checked before the run directory is created.",
+                       epilog=_TRUST)
+    t.add_argument("--algo", choices=ALGOS, default="ppo", help="algorithm")
+    t.add_argument("--env", dest="env_id", choices=auv_follow_env.ENV_IDS, default="AUVFollow-S4-v0", help="env id")
     t.add_argument("--env-kwarg", dest="env_kwargs", type=_key_value, action="append", default=[],
                    metavar="KEY=VALUE", help="scenario override for gym.make (repeatable), e.g. disturbance=L1")
-    t.add_argument("--mode", choices=MODES, default="residual")
+    t.add_argument("--mode", choices=MODES, default="residual", help="residual on a controller, or from scratch")
     t.add_argument("--controller", choices=ALL_CONTROLLERS, default=DEFAULT_CONTROLLER,
                    help="base controller of a residual agent (the paper's four, or ours: PROPOSED_KF, "
                         "PROPOSED_KF_DOB, MPC)")
     t.add_argument("--scale", type=_positive_float, default=DEFAULT_SCALE,
                    help="residual authority as a fraction of the force limits")
-    t.add_argument("--history-len", type=int, default=DEFAULT_HISTORY_LEN)
-    t.add_argument("--history-stride", type=_positive_int, default=DEFAULT_HISTORY_STRIDE)
-    t.add_argument("--no-base-action", dest="include_base_action", action="store_false")
+    t.add_argument("--history-len", type=_nonneg_int, default=DEFAULT_HISTORY_LEN,
+                   help="lagged delayed-target velocity differences in a residual agent's observation")
+    t.add_argument("--history-stride", type=_positive_int, default=DEFAULT_HISTORY_STRIDE,
+                   help="steps between the lagged samples")
+    t.add_argument("--no-base-action", dest="include_base_action", action="store_false",
+                   help="leave the base action out of a residual agent's observation")
     t.add_argument("--timesteps", dest="total_timesteps", type=_positive_int, default=None,
-                   help="total env steps (default: n_timesteps of the hyperparameter YAML)")
+                   help="total env steps (None: n_timesteps of the hyperparameter YAML)")
     t.add_argument("--max-minutes", type=_positive_float, default=None, help="wall-clock budget [min]")
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--n-envs", type=_positive_int, default=None)
+    t.add_argument("--seed", type=_nonneg_int, default=0, help="seed of the model and the training envs")
+    t.add_argument("--n-envs", type=_n_envs, default=None, help="training envs (None: the YAML's n_envs)")
     t.add_argument("--vec", choices=("dummy", "native"), default="dummy",
                    help="training VecEnv: SB3 DummyVecEnv of single envs, or the native batched env "
                         "(one kernel call for all envs; scratch mode only)")
     t.add_argument("--out", dest="out_dir", default="runs", help="parent directory of the run directory")
-    t.add_argument("--run-name", default=None)
-    t.add_argument("--checkpoint-freq", type=int, default=100_000, help="env steps between checkpoints (0: none)")
-    t.add_argument("--eval-freq", type=int, default=50_000, help="env steps between evaluations (0: none)")
-    t.add_argument("--eval-episodes", type=_positive_int, default=3)
-    t.add_argument("--resume", dest="resume_from", default=None, help="checkpoint/model .zip to continue")
-    t.add_argument("--hyperparams", dest="hyperparams_file", default=None, help="rl-zoo3-format YAML file")
+    t.add_argument("--run-name", default=None,
+                   help="run directory name, one path component (None: <algo>-<env>-<mode>-seed<k>-<timestamp>)")
+    t.add_argument("--checkpoint-freq", type=_nonneg_int, default=100_000,
+                   help="env steps between checkpoints (0: none)")
+    t.add_argument("--eval-freq", type=_nonneg_int, default=50_000, help="env steps between evaluations (0: none)")
+    t.add_argument("--eval-episodes", type=_positive_int, default=3,
+                   help="episodes per evaluation and of the final score")
+    t.add_argument("--eval-seed", type=_nonneg_int, default=500, help="seed of the evaluation env")
+    t.add_argument("--resume", dest="resume_from", default=None,
+                   help="checkpoint/model .zip to continue (trusted files only: its vecnormalize .pkl is unpickled)")
+    t.add_argument("--hyperparams", dest="hyperparams_file", default=None,
+                   help="rl-zoo3-format YAML file (None: agents/hyperparams/<algo>.yml)")
     t.add_argument("--hp", dest="hyperparams", type=_key_value, action="append", default=[], metavar="KEY=VALUE",
                    help="override a hyperparameter (repeatable), e.g. learning_rate=1e-4")
-    t.add_argument("--no-progress", dest="progress_bar", action="store_false")
-    t.add_argument("--no-tensorboard", dest="tensorboard", action="store_false")
-    t.add_argument("-v", "--verbose", type=int, default=0)
+    t.add_argument("--no-progress", dest="progress_bar", action="store_false", help="no progress output")
+    t.add_argument("--no-tensorboard", dest="tensorboard", action="store_false", help="no TensorBoard logs")
+    t.add_argument("--no-final-eval", dest="final_eval", action="store_false",
+                   help="skip the final score (eval-episodes episodes from eval-seed)")
+    t.add_argument("-v", "--verbose", type=int, choices=(0, 1, 2), default=0, help="SB3 verbosity")
 
-    e = sub.add_parser("evaluate", help="evaluate a saved agent on test seeds")
+    e = sub.add_parser("evaluate", help="evaluate a saved agent on test seeds", formatter_class=_Formatter,
+                       description="Evaluate a saved agent on test seeds (one row per episode).", epilog=_TRUST)
     e.add_argument("model", help="run directory or model .zip")
     e.add_argument("--env", dest="env_id", choices=auv_follow_env.ENV_IDS, default=None,
-                   help="env id (default: the one the agent was trained on)")
-    e.add_argument("--seeds", type=_seeds, default=list(range(1000, 1010)))
+                   help="env id (None: the one the agent was trained on)")
+    e.add_argument("--seeds", type=_seeds, default=list(range(1000, 1010)), help="test seeds, e.g. 1000-1009 or 1,2")
     e.add_argument("--out", default=None, help="CSV file for the per-episode metrics")
-    e.add_argument("--no-progress", dest="progress", action="store_false")
+    e.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
 
-    c = sub.add_parser("compare", help="agents and scripted controllers in one table and plot")
+    c = sub.add_parser("compare", help="agents and scripted controllers in one table and plot",
+                       formatter_class=_Formatter, epilog=_TRUST,
+                       description="Agents and the scripted controllers on the same env and seeds: "
+                                   "<name>.csv, <name>_summary.csv, <name>.md and <name>.png in --out.")
     c.add_argument("models", nargs="*", help="run directories or model .zip files")
-    c.add_argument("--env", dest="env_id", choices=auv_follow_env.ENV_IDS, default="AUVFollow-S4-v0")
+    c.add_argument("--env", dest="env_id", choices=auv_follow_env.ENV_IDS, default="AUVFollow-S4-v0", help="env id")
     c.add_argument("--env-kwarg", dest="env_kwargs", type=_key_value, action="append", default=[],
-                   metavar="KEY=VALUE")
-    c.add_argument("--seeds", type=_seeds, default=list(range(1000, 1010)))
+                   metavar="KEY=VALUE", help="scenario override for every policy (repeatable)")
+    c.add_argument("--seeds", type=_seeds, default=list(range(1000, 1010)), help="test seeds, e.g. 1000-1009 or 1,2")
     c.add_argument("--controllers", nargs="*", choices=ALL_CONTROLLERS, default=list(ALL_CONTROLLERS),
                    help="scripted controllers to include (default: the paper's four and ours)")
-    c.add_argument("--out", default="results/compare", help="directory for compare.csv/.md/.png")
-    c.add_argument("--name", default="compare")
-    c.add_argument("--no-progress", dest="progress", action="store_false")
+    c.add_argument("--out", default="results/tmp/compare", help="directory for the outputs (created if needed)")
+    c.add_argument("--name", default="compare", help="file name stem of the outputs")
+    c.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     _add_benchmark_commands(sub)
     return p
+
+
+class _Refused(Exception):
+    """A setting refused after parsing: (flag, message)."""
+
+
+def _check_writable(path: Path, flag: str, want_dir: bool) -> None:
+    """Refuse an output path that cannot be written, without creating anything."""
+    if path.exists():
+        if want_dir and not path.is_dir():
+            raise _Refused(flag, f"{path} exists and is not a directory")
+        if not want_dir and path.is_dir():
+            raise _Refused(flag, f"{path} is a directory: give a file name, e.g. {path / 'eval.csv'}")
+    anc = path if path.exists() else path.parent
+    while not anc.exists():
+        anc = anc.parent
+    if not anc.is_dir():
+        raise _Refused(flag, f"cannot create {path}: {anc} is not a directory")
+    if not os.access(anc, os.W_OK):
+        raise _Refused(flag, f"cannot write {path}: {anc} is not writable")
+
+
+def _load(path: str, flag: str):
+    from agents.train import load_agent
+
+    try:
+        return load_agent(path)
+    except (FileNotFoundError, ValueError) as exc:
+        raise _Refused(flag, str(exc)) from None
+
+
+def _train(args: argparse.Namespace) -> None:
+    from agents.train import train
+
+    kw = vars(args).copy()
+    kw.pop("command")
+    kw["env_kwargs"] = dict(kw["env_kwargs"])
+    kw["hyperparams"] = dict(kw["hyperparams"])
+    try:
+        run = train(TrainConfig(**kw))
+    except ConfigError as exc:
+        raise _Refused(FLAGS.get(exc.field, exc.field), str(exc)) from None
+    print(f"run directory: {run}")
+
+
+def _evaluate(args: argparse.Namespace) -> None:
+    from agents.train import evaluate_agent
+
+    if args.out:
+        _check_writable(Path(args.out), "--out", want_dir=False)
+    agent = _load(args.model, "model")
+    df = evaluate_agent(agent, args.seeds, env_id=args.env_id, progress=args.progress)
+    cols = ["policy", "seed", "true_steady_mean", "true_steady_rmse", "true_full_mean", "return"]
+    print(df[cols].to_string(index=False))
+    print(f"mean true steady-state mean error: {df['true_steady_mean'].mean():.4f} m")
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        df.to_csv(args.out, index=False)
+        print(f"wrote {args.out}")
+
+
+def _compare(args: argparse.Namespace) -> None:
+    from agents.compare import compare, summary_markdown
+
+    out = Path(args.out)
+    _check_writable(out, "--out", want_dir=True)
+    if not args.name or "/" in args.name or args.name in (".", ".."):
+        raise _Refused("--name", f"{args.name!r} is invalid: must be a file name stem without '/'")
+    agents = [_load(m, "models") for m in args.models]
+    try:
+        _, summary = compare(agents, args.env_id, args.seeds, controllers=args.controllers,
+                             env_kwargs=dict(args.env_kwargs) or None, out_dir=out, name=args.name,
+                             progress=args.progress)
+    except ConfigError as exc:
+        raise _Refused(FLAGS.get(exc.field, exc.field), str(exc)) from None
+    print(summary_markdown(summary, args.env_id, args.seeds))
+    print(f"wrote {', '.join(args.name + s for s in ('.csv', '_summary.csv', '.md', '.png'))} in {out}/")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -142,36 +289,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     if getattr(args, "handler", None) is not None:  # benchmark, report, sweep
         return _run_handler(args, parser)
     try:
-        if args.command == "train":
-            from agents.train import train
-
-            kw = vars(args).copy()
-            kw.pop("command")
-            kw["env_kwargs"] = dict(kw["env_kwargs"])
-            kw["hyperparams"] = dict(kw["hyperparams"])
-            kw["tensorboard"] = kw["tensorboard"]
-            run = train(TrainConfig(**kw))
-            print(f"run directory: {run}")
-        elif args.command == "evaluate":
-            from agents.train import evaluate_agent, load_agent
-
-            agent = load_agent(args.model)
-            df = evaluate_agent(agent, args.seeds, env_id=args.env_id, progress=args.progress)
-            cols = ["policy", "seed", "true_steady_mean", "true_steady_rmse", "true_full_mean", "return"]
-            print(df[cols].to_string(index=False))
-            print(f"mean true steady-state mean error: {df['true_steady_mean'].mean():.4f} m")
-            if args.out:
-                Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-                df.to_csv(args.out, index=False)
-        else:
-            from agents.compare import compare, summary_markdown
-
-            _, summary = compare(args.models, args.env_id, args.seeds, controllers=args.controllers,
-                                 env_kwargs=dict(args.env_kwargs) or None, out_dir=args.out, name=args.name,
-                                 progress=args.progress)
-            print(summary_markdown(summary, args.env_id, args.seeds))
-    except (ValueError, FileNotFoundError) as exc:
-        parser.error(str(exc))
+        {"train": _train, "evaluate": _evaluate, "compare": _compare}[args.command](args)
+    except _Refused as exc:
+        flag, msg = exc.args
+        print(f"auv-follow {args.command}: error: argument {flag}: {msg}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except TrainingInterrupted as exc:
+        print(f"auv-follow train: interrupted; run directory: {exc.run}", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:
+        print(f"auv-follow {args.command}: interrupted", file=sys.stderr)
+        return 130
     return 0
 
 

@@ -46,7 +46,9 @@ def compare(agents: Sequence[Agent | str | Path] = (), env_id: str = "AUVFollow-
         (per-episode metrics, per-policy summary).
 
     Raises:
-        ValueError: unknown env id or controller name.
+        ValueError: unknown env id or controller name, a broken run directory, or an ``out_dir``
+            that is a file; all checked before any episode runs.
+        FileNotFoundError: an agent path without a model (see :func:`agents.train.load_agent`).
     """
     from controllers import ALL_CONTROLLERS, make_controller
     from controllers.evaluation import evaluate
@@ -57,13 +59,15 @@ def compare(agents: Sequence[Agent | str | Path] = (), env_id: str = "AUVFollow-
         if n not in ALL_CONTROLLERS:
             raise ValueError(f"controller={n!r} is unknown: valid controllers are {list(ALL_CONTROLLERS)}")
     seeds = list(seeds)
+    loaded = [a if isinstance(a, Agent) else load_agent(a) for a in agents]  # every path checked before any work
+    if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ValueError(f"out_dir={str(out_dir)!r} is invalid: it exists and is not a directory")
     probe = gym.make(env_id, **(env_kwargs or {}))
     spec = probe.unwrapped.task_spec
     probe.close()
     frames = [evaluate(make_controller(n, spec), env_id, seeds, env_kwargs=env_kwargs, policy_name=n,
                        progress=progress) for n in names]
-    for a in agents:
-        agent = a if isinstance(a, Agent) else load_agent(a)
+    for agent in loaded:
         frames.append(evaluate(agent, env_id, seeds, env_kwargs=env_kwargs, env_wrapper=agent.env_wrapper,
                                policy_name=agent.name, progress=progress))
     per_episode = pd.concat(frames, ignore_index=True)

@@ -40,6 +40,8 @@ DEFAULT_CONTROLLER = "PROPOSED"
 DEFAULT_SCALE = 0.2  # residual authority: 0.2 of the force limits (30 N surge/sway, 6 N m yaw)
 DEFAULT_HISTORY_LEN = 4  # number of lagged samples of the delayed target velocity
 DEFAULT_HISTORY_STRIDE = 10  # steps between lagged samples (0.5 s at dt = 0.05 s)
+MAX_HISTORY_LEN = 100  # bound of history_len (features: 3 per lag)
+MAX_HISTORY_STEPS = 10_000  # bound of the memory history_len * history_stride (500 s at dt = 0.05 s)
 
 
 def residual_obs_dim(include_base_action: bool = True, history_len: int = DEFAULT_HISTORY_LEN,
@@ -51,12 +53,18 @@ def residual_obs_dim(include_base_action: bool = True, history_len: int = DEFAUL
 def _check(controller: str, scale: float, history_len: int, history_stride: int) -> None:
     if controller not in ALL_CONTROLLERS:
         raise ValueError(f"controller={controller!r} is unknown: valid controllers are {list(ALL_CONTROLLERS)}")
-    if not (np.isfinite(scale) and scale > 0):
+    if isinstance(scale, bool) or not isinstance(scale, (int, float, np.integer, np.floating)) or not (
+            np.isfinite(scale) and scale > 0):
         raise ValueError(f"scale={scale!r} is invalid: must be a finite number > 0 (fraction of the force limits)")
     if isinstance(history_len, bool) or not isinstance(history_len, (int, np.integer)) or history_len < 0:
         raise ValueError(f"history_len={history_len!r} is invalid: must be an integer >= 0")
     if isinstance(history_stride, bool) or not isinstance(history_stride, (int, np.integer)) or history_stride < 1:
         raise ValueError(f"history_stride={history_stride!r} is invalid: must be an integer >= 1")
+    if history_len > MAX_HISTORY_LEN:
+        raise ValueError(f"history_len={history_len!r} is invalid: must be at most {MAX_HISTORY_LEN}")
+    if history_len * history_stride > MAX_HISTORY_STEPS:
+        raise ValueError(f"history_stride={history_stride!r} is invalid: history_len * history_stride = "
+                         f"{history_len * history_stride} steps of memory; at most {MAX_HISTORY_STEPS} allowed")
 
 
 class DelayedTargetHistory:
@@ -202,6 +210,7 @@ class ResidualPolicy:
                "history_len": DEFAULT_HISTORY_LEN, "history_stride": DEFAULT_HISTORY_STRIDE, **residual}
         _check(cfg["controller"], cfg["scale"], cfg["history_len"], cfg["history_stride"])
         self.agent = agent
+        self.spec = spec  #: the task spec it was built for (checked by controllers.evaluation.evaluate)
         self.base = make_controller(cfg["controller"], spec)
         self.scale = float(cfg["scale"])
         self.include_base_action = bool(cfg["include_base_action"])

@@ -4,24 +4,38 @@ residual on top of one of the paper's controllers.
 A run writes everything into its own directory ``<out>/<algo>-<env>-<mode>-seed<k>-<timestamp>/``:
 
 * ``config.yaml``: the resolved configuration (run settings, hyperparameters, residual
-  settings) and the versions used (python, torch, stable-baselines3, gymnasium, numpy, git);
-* ``model.zip`` and ``vecnormalize.pkl`` (observation/reward statistics, if normalised);
-* ``checkpoints/`` (``CheckpointCallback``, with the matching VecNormalize statistics);
+  settings), the versions used (python, torch, stable-baselines3, gymnasium, numpy, git) and,
+  at the end, ``result`` (steps, wall clock, ``interrupted``, the final score);
+* ``model.zip``; ``vecnormalize.json`` (the observation statistics evaluation needs, plain
+  JSON, see :mod:`agents.obs_stats`) and ``vecnormalize.pkl`` (SB3's pickle of the whole
+  wrapper, read only by ``resume_from``);
+* ``checkpoints/`` (``model_<steps>_steps.zip`` with the matching ``.json`` and ``.pkl``
+  statistics);
 * ``monitor/`` (per-episode Monitor CSVs of the training envs) and ``eval/evaluations.npz``
   (``EvalCallback``); ``tb/`` (TensorBoard, when ``tensorboard`` is importable).
 
+Everything is validated before the run directory is created: a refused configuration
+leaves nothing behind. Ctrl-C during training saves the model and the statistics, records
+``interrupted: true`` and re-raises (:class:`TrainingInterrupted`).
+
 :func:`load_agent` turns a run directory (or a ``.zip`` inside it) back into a policy with
 SB3's ``predict`` protocol plus the env wrapper it needs, for
-:func:`controllers.evaluation.evaluate`.
+:func:`controllers.evaluation.evaluate`. It never unpickles the statistics, but an SB3
+``model.zip`` may itself hold pickled objects: load run directories and models only from
+sources you would trust with code.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import inspect
 import json
-import pickle
+import math
 import platform
+import re
+import shutil
 import subprocess
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -32,6 +46,7 @@ import numpy as np
 import yaml
 
 import auv_follow_env
+from agents.obs_stats import ObsStats, read_obs_stats, stats_from_vecnormalize, write_obs_stats
 from agents.residual import (
     DEFAULT_CONTROLLER,
     DEFAULT_HISTORY_LEN,
@@ -40,8 +55,9 @@ from agents.residual import (
     make_residual_wrapper,
 )
 
-__all__ = ["ALGOS", "MODES", "TrainConfig", "train", "load_hyperparams", "load_agent", "Agent",
-           "versions", "evaluate_agent", "HYPERPARAMS_DIR"]
+__all__ = ["ALGOS", "MODES", "TrainConfig", "train", "load_hyperparams", "check_hyperparams", "load_agent",
+           "Agent", "versions", "evaluate_agent", "HYPERPARAMS_DIR", "ConfigError", "TrainingInterrupted",
+           "MAX_N_ENVS"]
 
 ALGOS: tuple[str, ...] = ("ppo", "sac", "td3", "recurrentppo")
 #: algorithms whose policy carries a recurrent state (sb3-contrib's RecurrentPPO, an LSTM policy)
@@ -50,6 +66,30 @@ MODES: tuple[str, ...] = ("residual", "scratch")
 VEC_KINDS = ("dummy", "native")
 HYPERPARAMS_DIR = Path(__file__).with_name("hyperparams")
 _ZOO_KEYS = ("n_timesteps", "policy", "n_envs", "normalize", "policy_kwargs", "noise_type", "noise_std")
+MAX_N_ENVS = 4096  #: upper bound of n_envs (each env is a Python object in the DummyVecEnv)
+
+
+class ConfigError(ValueError):
+    """An invalid training/evaluation setting; ``field`` names the :class:`TrainConfig` field
+    (the CLI maps it to its flag)."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`train`, raised after the model, the statistics and ``config.yaml``
+    (``interrupted: true``) were saved in ``run``."""
+
+    def __init__(self, run: Path, num_timesteps: int) -> None:
+        super().__init__(f"training interrupted at {num_timesteps} steps; saved in {run}")
+        self.run = run
+        self.num_timesteps = num_timesteps
+
+
+def _one_line(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: " + " ".join(str(exc).split())
 
 
 def _algo_class(algo: str):
@@ -103,8 +143,11 @@ def load_hyperparams(algo: str, env_id: str, path: str | Path | None = None,
         raise FileNotFoundError(f"hyperparameter file {path} does not exist")
     with open(path) as f:
         table = yaml.safe_load(f) or {}
-    hp = dict(table.get("default", {}))
-    hp.update(table.get(env_id, {}) or {})
+    if not isinstance(table, dict) or not all(isinstance(table.get(k) or {}, dict) for k in ("default", env_id)):
+        raise ValueError(f"hyperparameter file {path} is not in rl-zoo's format: expected a mapping of sections "
+                         "(default, <env id>) to mappings of hyperparameters")
+    hp = dict(table.get("default") or {})
+    hp.update(table.get(env_id) or {})
     hp.update(overrides or {})
     return {k: _eval_zoo(v) for k, v in hp.items()}
 
@@ -130,6 +173,126 @@ def versions() -> dict[str, str]:
             "platform": platform.platform()}
 
 
+# --- hyperparameter checks ---------------------------------------------------------------
+
+#: (lower bound, lower bound inclusive, upper bound) of numeric hyperparameters
+_NUMERIC_BOUNDS: dict[str, tuple[float, bool, float]] = {
+    "learning_rate": (0.0, False, math.inf), "clip_range": (0.0, False, math.inf),
+    "max_grad_norm": (0.0, False, math.inf), "n_timesteps": (0.0, False, math.inf),
+    "gamma": (0.0, False, 1.0), "gae_lambda": (0.0, True, 1.0), "tau": (0.0, False, 1.0),
+    "vf_coef": (0.0, True, math.inf), "ent_coef": (0.0, True, math.inf), "noise_std": (0.0, True, math.inf),
+    "target_policy_noise": (0.0, True, math.inf), "target_noise_clip": (0.0, True, math.inf),
+    "target_kl": (0.0, False, math.inf), "clip_range_vf": (0.0, False, math.inf),
+    "n_steps": (1, True, math.inf), "batch_size": (1, True, math.inf), "n_epochs": (1, True, math.inf),
+    "buffer_size": (1, True, math.inf), "policy_delay": (1, True, math.inf), "n_envs": (1, True, MAX_N_ENVS),
+    "learning_starts": (0, True, math.inf), "target_update_interval": (1, True, math.inf),
+    "stats_window_size": (1, True, math.inf)}
+#: hyperparameters whose value must be a whole number
+_INTEGER_KEYS = frozenset({"n_steps", "batch_size", "n_epochs", "buffer_size", "policy_delay", "n_envs",
+                           "learning_starts", "target_update_interval", "stats_window_size", "sde_sample_freq",
+                           "gradient_steps"})
+#: set by TrainConfig / train, not through the hyperparameters
+_RESERVED_KEYS = {"seed": "seed", "device": "(always cpu)", "verbose": "verbose", "tensorboard_log": "tensorboard",
+                  "env": "env_id", "_init_setup_model": "(internal)", "action_noise": "noise_type/noise_std"}
+_NORMALIZE_KEYS = ("norm_obs", "norm_reward", "clip_obs", "clip_reward", "gamma", "epsilon")
+
+
+def _bounds_text(lo: float, inclusive: bool, hi: float) -> str:
+    if hi == math.inf:
+        return f"{'>=' if inclusive else '>'} {lo:g}"
+    return f"in {'[' if inclusive else '('}{lo:g}, {hi:g}]"
+
+
+def _check_number(key: str, v: Any) -> Any:
+    if isinstance(v, str):  # YAML 1.1 reads 1e-4 and 3.0e6 as strings; rl-zoo accepts them as numbers
+        try:
+            v = float(v)
+        except ValueError:
+            pass
+    is_num = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+    if key in _INTEGER_KEYS:
+        if not (is_num and math.isfinite(v) and float(v).is_integer()):
+            raise ConfigError("hyperparams", f"hyperparameter {key}={v!r} is invalid: must be a whole number")
+        v = int(v)
+        if key == "gradient_steps" and not (v >= 1 or v == -1):
+            raise ConfigError("hyperparams", f"hyperparameter gradient_steps={v!r} is invalid: must be >= 1 or -1")
+    elif key in _NUMERIC_BOUNDS and not (is_num and math.isfinite(v)):
+        raise ConfigError("hyperparams", f"hyperparameter {key}={v!r} is invalid: must be a finite number")
+    if key in _NUMERIC_BOUNDS:
+        lo, inclusive, hi = _NUMERIC_BOUNDS[key]
+        if not ((v >= lo if inclusive else v > lo) and v <= hi):
+            raise ConfigError("hyperparams", f"hyperparameter {key}={v!r} is invalid: must be "
+                                             f"{_bounds_text(lo, inclusive, hi)}")
+    return float(v) if key in _NUMERIC_BOUNDS and key not in _INTEGER_KEYS else v
+
+
+def check_hyperparams(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
+    """Validate resolved hyperparameters (after :func:`load_hyperparams`) for ``algo`` and return
+    them with whole numbers as ``int``.
+
+    Checks: every key is a parameter of the algorithm's constructor or one of rl-zoo's keys
+    (``n_timesteps``, ``policy``, ``n_envs``, ``normalize``, ``policy_kwargs``, ``noise_type``,
+    ``noise_std``); numbers are finite and in range; ``normalize`` is a bool or a dict of
+    VecNormalize settings; ``policy_kwargs`` is a dict. The algorithm's own checks run when
+    :func:`train` builds the model (before the run directory is created).
+
+    Raises:
+        ConfigError: (``field="hyperparams"``) naming the key, its value and what is allowed.
+    """
+    cls = _algo_class(algo)
+    params = {k: p.default for k, p in inspect.signature(cls.__init__).parameters.items()
+              if k not in ("self", "policy")}
+    out: dict[str, Any] = {}
+    for key, v in hp.items():
+        if key in _RESERVED_KEYS:
+            raise ConfigError("hyperparams", f"hyperparameter {key!r} cannot be set: it is set by "
+                                             f"{_RESERVED_KEYS[key]}")
+        if key not in params and key not in _ZOO_KEYS:
+            valid = sorted((set(params) - set(_RESERVED_KEYS)) | set(_ZOO_KEYS))
+            raise ConfigError("hyperparams", f"hyperparameter {key!r} is unknown for {algo}: valid keys are {valid}")
+        if key == "ent_coef" and isinstance(v, str):
+            if not re.fullmatch(r"auto(_[0-9.eE+-]+)?", v) or algo != "sac":
+                raise ConfigError("hyperparams", f"hyperparameter ent_coef={v!r} is invalid: must be a number >= 0"
+                                                 + (" or 'auto' / 'auto_<init>'" if algo == "sac" else ""))
+        elif key == "train_freq" and isinstance(v, (list, tuple)):
+            if len(v) != 2 or v[1] not in ("step", "episode"):
+                raise ConfigError("hyperparams", f"hyperparameter train_freq={v!r} is invalid: must be a whole "
+                                                 "number >= 1 or [n, 'step' | 'episode']")
+            v = [_check_number("n_steps", v[0]), v[1]]
+        elif key == "train_freq":
+            v = _check_number("n_steps", v)
+        elif key == "normalize":
+            if isinstance(v, dict):
+                bad = sorted(set(v) - set(_NORMALIZE_KEYS))
+                if bad:
+                    raise ConfigError("hyperparams", f"hyperparameter normalize has unknown key(s) {bad}: valid "
+                                                     f"keys are {list(_NORMALIZE_KEYS)}")
+            elif not isinstance(v, bool):
+                raise ConfigError("hyperparams", f"hyperparameter normalize={v!r} is invalid: must be true, false "
+                                                 "or dict(norm_obs=..., norm_reward=..., ...)")
+        elif key == "policy_kwargs":
+            if v is not None and not isinstance(v, dict):
+                raise ConfigError("hyperparams", f"hyperparameter policy_kwargs={v!r} is invalid: must be a dict")
+        elif key == "policy":
+            if not isinstance(v, str):
+                raise ConfigError("hyperparams", f"hyperparameter policy={v!r} is invalid: must be a policy name "
+                                                 "such as 'MlpPolicy'")
+        elif key == "noise_type":
+            if v not in (None, "normal", "ornstein-uhlenbeck"):
+                raise ConfigError("hyperparams", f"hyperparameter noise_type={v!r} is unknown: valid types are "
+                                                 "['normal', 'ornstein-uhlenbeck']")
+        elif v is None and params.get(key, 0) is None:
+            pass
+        elif key in _NUMERIC_BOUNDS or key in _INTEGER_KEYS:
+            v = _check_number(key, v)
+        elif isinstance(params.get(key), bool) and not isinstance(v, bool):
+            raise ConfigError("hyperparams", f"hyperparameter {key}={v!r} is invalid: must be true or false")
+        out[key] = v
+    if "n_timesteps" not in out:
+        out["n_timesteps"] = None
+    return out
+
+
 @dataclass
 class TrainConfig:
     """One training run (everything not given comes from the hyperparameter YAML)."""
@@ -146,48 +309,79 @@ class TrainConfig:
     total_timesteps: int | None = None  #: env steps (None: the YAML's n_timesteps)
     max_minutes: float | None = None  #: wall-clock budget; training stops when it runs out
     seed: int = 0  #: seeds the model and the training envs (env i: seed + i)
-    n_envs: int | None = None  #: parallel training envs (None: the YAML's)
+    n_envs: int | None = None  #: parallel training envs (None: the YAML's); at most MAX_N_ENVS
     vec: str = "dummy"  #: training VecEnv: "dummy" (SB3 DummyVecEnv) or "native" (batched AUVFollowVectorEnv)
     out_dir: str = "runs"  #: parent of the run directory
-    run_name: str | None = None  #: run directory name (None: <algo>-<env>-<mode>-seed<k>-<timestamp>)
+    run_name: str | None = None
+    """Run directory name, one path component (None: ``<algo>-<env>-<mode>-seed<k>-<timestamp>``)."""
     checkpoint_freq: int = 100_000  #: env steps between checkpoints (0: none)
-    eval_freq: int = 50_000  #: env steps between EvalCallback evaluations (0: none)
-    eval_episodes: int = 3  #: episodes per evaluation
+    eval_freq: int = 50_000  #: env steps between evaluations (0: none)
+    eval_episodes: int = 3  #: episodes per evaluation (and of the final score)
     eval_seed: int = 500  #: seed of the EvalCallback env (distinct from training and test seeds)
     resume_from: str | None = None  #: checkpoint/model .zip to continue (keeps num_timesteps)
     hyperparams_file: str | None = None  #: YAML file (None: agents/hyperparams/<algo>.yml)
     hyperparams: dict[str, Any] = field(default_factory=dict)  #: overrides of the YAML entries
-    progress_bar: bool = True  #: tqdm/rich progress bar
+    progress_bar: bool = True  #: progress bar on a terminal, a line per 10 % otherwise
     tensorboard: bool = True  #: TensorBoard logs if tensorboard is importable
+    final_eval: bool = True  #: score the final model on eval_episodes seeds (eval_seed, ...) and print it
     verbose: int = 0  #: SB3 verbosity
 
     def validate(self) -> None:
-        """Raise ``ValueError`` naming the first invalid field."""
-        _algo_class(self.algo)
-        check_env_id(self.env_id, allow_any=self.mode == "scratch")
+        """Raise :class:`ConfigError` (a ``ValueError``) naming the first invalid field."""
+        try:
+            _algo_class(self.algo)
+            check_env_id(self.env_id, allow_any=self.mode == "scratch")
+        except ValueError as exc:
+            raise ConfigError("algo" if "algo" in str(exc) else "env_id", str(exc)) from None
         if self.mode not in MODES:
-            raise ValueError(f"mode={self.mode!r} is unknown: valid modes are {list(MODES)}")
+            raise ConfigError("mode", f"mode={self.mode!r} is unknown: valid modes are {list(MODES)}")
         if self.vec not in VEC_KINDS:
-            raise ValueError(f"vec={self.vec!r} is unknown: valid kinds are {list(VEC_KINDS)}")
+            raise ConfigError("vec", f"vec={self.vec!r} is unknown: valid kinds are {list(VEC_KINDS)}")
         if self.vec == "native" and self.mode != "scratch":
-            raise ValueError("vec='native' trains from scratch only (mode='scratch'): the residual wrapper is a "
-                             "per-env gymnasium wrapper; use vec='dummy' for residual agents")
+            raise ConfigError("vec", "vec='native' trains from scratch only (mode='scratch'): the residual wrapper "
+                                     "is a per-env gymnasium wrapper; use vec='dummy' for residual agents")
         if self.mode == "residual":
-            make_residual_wrapper(**self.residual_kwargs())
-        for name in ("total_timesteps", "n_envs"):
+            try:
+                make_residual_wrapper(**self.residual_kwargs())
+            except ValueError as exc:
+                name = str(exc).split("=", 1)[0]
+                raise ConfigError(name if name in self.residual_kwargs() else "controller", str(exc)) from None
+        if not isinstance(self.env_kwargs, dict):
+            raise ConfigError("env_kwargs", f"env_kwargs={self.env_kwargs!r} is invalid: must be a dict")
+        if not isinstance(self.hyperparams, dict):
+            raise ConfigError("hyperparams", f"hyperparams={self.hyperparams!r} is invalid: must be a dict")
+        for name, lo, hi in (("total_timesteps", 1, math.inf), ("n_envs", 1, MAX_N_ENVS),
+                             ("checkpoint_freq", 0, math.inf), ("eval_freq", 0, math.inf),
+                             ("eval_episodes", 1, 10_000), ("seed", 0, 2**32 - 1),
+                             ("eval_seed", 0, 2**32 - 1), ("verbose", 0, 2)):
             v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v <= 0):
-                raise ValueError(f"{name}={v!r} is invalid: must be a positive integer")
-        if self.max_minutes is not None and not (np.isfinite(self.max_minutes) and self.max_minutes > 0):
-            raise ValueError(f"max_minutes={self.max_minutes!r} is invalid: must be a positive number")
-        for name in ("checkpoint_freq", "eval_freq"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name}={getattr(self, name)!r} is invalid: must be >= 0 (0 disables)")
-        if self.eval_episodes <= 0:
-            raise ValueError(f"eval_episodes={self.eval_episodes!r} is invalid: must be a positive integer")
-        check_tier_training_seeds(self.env_id, [self.seed + i for i in range(self.n_envs or 16)] + [self.eval_seed])
+            if v is None and name in ("total_timesteps", "n_envs"):
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+                allowed = f"an integer >= {lo}" if hi == math.inf else f"an integer in [{lo}, {hi}]"
+                raise ConfigError(name, f"{name}={v!r} is invalid: must be {allowed}")
+        if self.max_minutes is not None and (isinstance(self.max_minutes, bool) or not isinstance(
+                self.max_minutes, (int, float)) or not (math.isfinite(self.max_minutes) and self.max_minutes > 0)):
+            raise ConfigError("max_minutes", f"max_minutes={self.max_minutes!r} is invalid: must be a finite "
+                                             "number > 0")
+        if self.run_name is not None:
+            n = self.run_name
+            if (not isinstance(n, str) or n in ("", ".", "..") or "/" in n or "\\" in n or "\0" in n
+                    or Path(n).name != n):
+                raise ConfigError("run_name", f"run_name={n!r} is invalid: must be a single directory name (no "
+                                              "path separators, not '.' or '..'); use out_dir for the parent")
+        out = Path(self.out_dir)
+        if out.exists() and not out.is_dir():
+            raise ConfigError("out_dir", f"out_dir={self.out_dir!r} is invalid: it exists and is not a directory")
+        try:
+            check_tier_training_seeds(self.env_id, [self.seed + i for i in range(self.n_envs or 16)]
+                                      + [self.eval_seed])
+        except ValueError as exc:
+            raise ConfigError("seed", str(exc)) from None
         if self.resume_from is not None and not Path(self.resume_from).is_file():
-            raise FileNotFoundError(f"resume_from={self.resume_from!r}: no such model file")
+            raise ConfigError("resume_from", f"resume_from={self.resume_from!r}: no such model file")
+        if self.hyperparams_file is not None and not Path(self.hyperparams_file).is_file():
+            raise ConfigError("hyperparams_file", f"hyperparams_file={self.hyperparams_file!r}: no such file")
 
     def residual_kwargs(self) -> dict[str, Any]:
         return {"controller": self.controller, "scale": self.scale, "include_base_action": self.include_base_action,
@@ -254,118 +448,409 @@ def _wall_clock_callback(max_seconds: float):
     return StopOnWallClock()
 
 
-def _vecnorm_for(model_path: Path) -> Path | None:
-    """The VecNormalize statistics saved with a model or a checkpoint."""
-    if model_path.name == "model.zip":
-        p = model_path.with_name("vecnormalize.pkl")
-        return p if p.is_file() else None
-    stem = model_path.stem  # <prefix>_<steps>_steps
-    if stem.endswith("_steps"):
-        prefix, steps, _ = stem.rsplit("_", 2)
-        p = model_path.with_name(f"{prefix}_vecnormalize_{steps}_steps.pkl")
-        if p.is_file():
-            return p
-    p = model_path.parent / "vecnormalize.pkl"
-    return p if p.is_file() else None
+class _StopOnSigint:
+    """Ctrl-C (SIGINT) during ``learn`` asks training to stop at the next step instead of
+    raising wherever the signal lands (inside torch, numba or a library that catches and
+    continues, which made an interrupt occasionally ineffective). A second Ctrl-C raises
+    KeyboardInterrupt at once. Only installed in the main thread."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._old: Any = None
+
+    def __enter__(self) -> _StopOnSigint:
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def __exit__(self, *exc: Any) -> None:
+        import signal
+
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+
+    def callback(self):
+        from stable_baselines3.common.callbacks import BaseCallback
+
+        flag = self
+
+        class StopOnSigint(BaseCallback):
+            def _on_step(self) -> bool:
+                return not flag.requested
+
+        return StopOnSigint()
+
+
+class _Progress:
+    """Training progress over ``total`` new steps, never past 100 %: a tqdm bar on a terminal,
+    otherwise a plain line per 10 % (no carriage returns or escape codes in logs)."""
+
+    def __init__(self, total: int, start: int, enabled: bool, stream: Any = None) -> None:
+        self.total, self.start, self.enabled = total, start, enabled
+        self.stream = stream if stream is not None else sys.stderr
+        self.bar = None
+        self.shown = 0
+        self.next_line = 0.1
+        if enabled and getattr(self.stream, "isatty", lambda: False)():
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=total, unit="step", unit_scale=True, desc="training", file=self.stream)
+
+    def update(self, num_timesteps: int) -> None:
+        if not self.enabled:
+            return
+        done = min(max(num_timesteps - self.start, 0), self.total)
+        if self.bar is not None:
+            self.bar.update(done - self.shown)
+        else:
+            while done >= self.next_line * self.total - 1e-9 and self.next_line <= 1.0 + 1e-9:
+                print(f"training: {round(self.next_line * 100)}% ({done:,}/{self.total:,} steps)", file=self.stream,
+                      flush=True)
+                self.next_line += 0.1
+        self.shown = done
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+def _progress_callback(progress: _Progress):
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class ProgressCallback(BaseCallback):
+        def _on_step(self) -> bool:
+            progress.update(self.num_timesteps)
+            return True
+
+    return ProgressCallback()
+
+
+def _checkpoint_callback(save_freq: int, path: str):
+    """SB3's CheckpointCallback that also writes the JSON statistics beside each pickle."""
+    from stable_baselines3.common.callbacks import CheckpointCallback
+
+    class Checkpoint(CheckpointCallback):
+        def _on_step(self) -> bool:
+            due = self.n_calls % self.save_freq == 0
+            out = super()._on_step()
+            vn = self.model.get_vec_normalize_env()
+            if due and vn is not None:
+                write_obs_stats(vn, self._checkpoint_path("vecnormalize_", extension="json"))
+            return out
+
+    return Checkpoint(save_freq, path, name_prefix="model", save_vecnormalize=True)
+
+
+_CKPT = re.compile(r"^(?P<prefix>.+)_(?P<steps>\d+)_steps$")
+
+
+def _stats_path(model_path: Path, suffix: str) -> Path:
+    """The normalisation statistics saved with a model (``vecnormalize<suffix>``) or a checkpoint
+    (``<prefix>_vecnormalize_<steps>_steps<suffix>``); other names: ``vecnormalize<suffix>`` beside."""
+    m = _CKPT.match(model_path.stem)
+    if model_path.name != "model.zip" and m:
+        return model_path.with_name(f"{m['prefix']}_vecnormalize_{m['steps']}_steps{suffix}")
+    return model_path.with_name(f"vecnormalize{suffix}")
+
+
+def _checkpoints(run: Path) -> list[Path]:
+    """Checkpoints of a run, oldest first (by step count)."""
+    found = [(int(m["steps"]), p) for p in (run / "checkpoints").glob("*.zip") if (m := _CKPT.match(p.stem))]
+    return [p for _, p in sorted(found)]
+
+
+def _run_config_path(model_path: Path) -> Path | None:
+    for d in (model_path.parent, model_path.parent.parent):
+        if (d / "config.yaml").is_file():
+            return d / "config.yaml"
+    return None
+
+
+def read_run_config(path: str | Path) -> dict[str, Any]:
+    """A run's ``config.yaml``, checked: a mapping with a ``run`` section naming a known algo and mode.
+
+    Raises:
+        ValueError: broken YAML or not a run configuration (the message names the file).
+    """
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path} is not valid YAML ({_one_line(exc)})") from None
+    what = "a run configuration written by auv-follow train (a mapping with a 'run' section)"
+    if not isinstance(data, dict) or not isinstance(data.get("run"), dict):
+        raise ValueError(f"{path} is {'empty' if data is None else 'not ' + what}: expected {what}")
+    run = data["run"]
+    for key, valid in (("algo", ALGOS), ("mode", MODES)):
+        if run.get(key) not in valid:
+            raise ValueError(f"{path}: run.{key}={run.get(key)!r} is invalid: must be one of {list(valid)}")
+    if not isinstance(run.get("env_id"), str):
+        raise ValueError(f"{path}: run.env_id={run.get('env_id')!r} is invalid: must be an env id")
+    if run.get("env_kwargs") is not None and not isinstance(run["env_kwargs"], dict):
+        raise ValueError(f"{path}: run.env_kwargs={run['env_kwargs']!r} is invalid: must be a mapping")
+    if run["mode"] == "residual" and not isinstance(data.get("residual"), dict):
+        raise ValueError(f"{path}: a residual run needs a 'residual' section (the wrapper settings)")
+    if data.get("normalize") is not None and not isinstance(data["normalize"], dict):
+        raise ValueError(f"{path}: normalize={data['normalize']!r} is invalid: must be a mapping or null")
+    return data
+
+
+def _check_resume(cfg: TrainConfig, residual: dict | None) -> None:
+    """Refuse a checkpoint whose run was trained with another algorithm or observation layout."""
+    cpath = _run_config_path(Path(cfg.resume_from))
+    if cpath is None:
+        return  # a bare model file: the trial load below checks it
+    try:
+        old = read_run_config(cpath)
+    except ValueError as exc:
+        raise ConfigError("resume_from", str(exc)) from None
+    run = old["run"]
+    if run["algo"] != cfg.algo:
+        raise ConfigError("resume_from", f"resume_from={cfg.resume_from!r} was trained with algo={run['algo']!r} "
+                                         f"({cpath}): resume it with algo={run['algo']!r}, not {cfg.algo!r}")
+    if run["mode"] != cfg.mode:
+        raise ConfigError("resume_from", f"resume_from={cfg.resume_from!r} was trained in mode={run['mode']!r} "
+                                         f"({cpath}): resume it with mode={run['mode']!r}, not {cfg.mode!r}")
+    if residual is not None:
+        for key in ("include_base_action", "history_len", "history_stride", "controller", "scale"):
+            if key in old["residual"] and old["residual"][key] != residual[key]:
+                raise ConfigError("resume_from", f"resume_from={cfg.resume_from!r} was trained with "
+                                                 f"{key}={old['residual'][key]!r} ({cpath}), not {residual[key]!r}")
+
+
+@dataclass
+class _Plan:
+    """Everything train() resolved and checked before it creates the run directory."""
+
+    cls: Any
+    hp: dict[str, Any]
+    total: int
+    n_envs: int
+    residual: dict[str, Any] | None
+    norm_kw: dict[str, Any] | None
+    gamma: float
+    run: Path
+    vecnorm_pickle: Path | None
+
+
+def _plan(cfg: TrainConfig) -> _Plan:
+    cfg.validate()
+    cls = _algo_class(cfg.algo)
+    try:
+        hp = load_hyperparams(cfg.algo, cfg.env_id, cfg.hyperparams_file, cfg.hyperparams)
+    except (yaml.YAMLError, SyntaxError, NameError, TypeError, ValueError) as exc:
+        if isinstance(exc, ConfigError):
+            raise
+        where = "hyperparams" if cfg.hyperparams else "hyperparams_file"
+        raise ConfigError(where, f"hyperparameters could not be read: {_one_line(exc)}") from None
+    hp = check_hyperparams(cfg.algo, hp)
+    if cfg.total_timesteps is None and hp["n_timesteps"] is None:
+        raise ConfigError("total_timesteps", "total_timesteps is not given and the hyperparameters have no "
+                                             "n_timesteps")
+    total = int(cfg.total_timesteps if cfg.total_timesteps is not None else hp["n_timesteps"])
+    n_envs = int(cfg.n_envs if cfg.n_envs is not None else hp.get("n_envs", 1))
+    residual = cfg.residual_kwargs() if cfg.mode == "residual" else None
+    algo_kwargs = {k: v for k, v in hp.items() if k not in _ZOO_KEYS}
+    gamma = float(algo_kwargs.get("gamma", 0.99))
+    norm_kw = _normalize_kwargs(hp.get("normalize", False), gamma)
+    try:
+        gym.make(cfg.env_id, **cfg.env_kwargs).close()
+    except Exception as exc:  # noqa: BLE001 (any refusal of the env settings is a config error)
+        raise ConfigError("env_kwargs", f"env_kwargs={cfg.env_kwargs!r} are refused by {cfg.env_id}: "
+                                        f"{_one_line(exc)}") from None
+    vecnorm_pickle = None
+    if cfg.resume_from is not None:
+        _check_resume(cfg, residual)
+        if norm_kw is not None:
+            vecnorm_pickle = _stats_path(Path(cfg.resume_from), ".pkl")
+            if not vecnorm_pickle.is_file():
+                raise ConfigError("resume_from", f"{vecnorm_pickle} is missing: resuming an agent trained with "
+                                                 "normalisation needs the VecNormalize statistics saved with "
+                                                 f"{cfg.resume_from}")
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    name = cfg.run_name or f"{cfg.algo}-{cfg.env_id}-{cfg.mode}-seed{cfg.seed}-{stamp}"
+    run = Path(cfg.out_dir) / name
+    if run.exists() and (not run.is_dir() or any(run.iterdir())):
+        raise ConfigError("run_name", f"run directory {run} already exists and is not empty: choose another "
+                                      "run_name/out_dir")
+    return _Plan(cls, hp, total, n_envs, residual, norm_kw, gamma, run, vecnorm_pickle)
+
+
+def _build(cfg: TrainConfig, plan: _Plan, monitor_dir: str | None, tb: str | None):
+    """The training VecEnv (normalised if configured) and the model (new or resumed)."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    venv = _make_venv(cfg.env_id, cfg.env_kwargs, plan.n_envs, cfg.seed, cfg.mode, plan.residual, monitor_dir,
+                      cfg.vec)
+    try:
+        if plan.vecnorm_pickle is not None:
+            try:
+                venv = VecNormalize.load(str(plan.vecnorm_pickle), venv)
+            except Exception as exc:  # noqa: BLE001
+                raise ConfigError("resume_from", f"{plan.vecnorm_pickle} is not a VecNormalize pickle for this env: "
+                                                 f"{_one_line(exc)}") from None
+            venv.training = True
+        elif plan.norm_kw is not None:
+            try:
+                venv = VecNormalize(venv, **plan.norm_kw)
+            except (TypeError, ValueError) as exc:
+                raise ConfigError("hyperparams", f"normalize={plan.norm_kw!r} is refused: {_one_line(exc)}") from None
+        if cfg.resume_from is not None:
+            try:
+                model = plan.cls.load(cfg.resume_from, env=venv, device="cpu", tensorboard_log=tb)
+            except Exception as exc:  # noqa: BLE001
+                raise ConfigError("resume_from", f"resume_from={cfg.resume_from!r} cannot be resumed as "
+                                                 f"{cfg.algo} in mode {cfg.mode!r}: {_one_line(exc)}") from None
+        else:
+            algo_kwargs = {k: v for k, v in plan.hp.items() if k not in _ZOO_KEYS}
+            noise = _action_noise(plan.hp, venv.action_space.shape[0]) if cfg.algo in ("sac", "td3") else None
+            if noise is not None:
+                algo_kwargs["action_noise"] = noise
+            try:
+                model = plan.cls(plan.hp.get("policy", "MlpPolicy"), venv, seed=cfg.seed, device="cpu",
+                                 verbose=cfg.verbose, tensorboard_log=tb, policy_kwargs=plan.hp.get("policy_kwargs"),
+                                 **algo_kwargs)
+            except Exception as exc:  # noqa: BLE001 (SB3 checks with asserts, TypeErrors, ValueErrors)
+                raise ConfigError("hyperparams", f"{cfg.algo} refused the hyperparameters: {_one_line(exc)}") from None
+    except BaseException:
+        venv.close()
+        raise
+    start = int(model.num_timesteps)
+    if cfg.resume_from is not None and plan.total <= start:
+        venv.close()
+        raise ConfigError("total_timesteps", f"total_timesteps={plan.total} is not beyond the checkpoint's {start} "
+                                             "steps: give a larger total_timesteps to resume")
+    return venv, model
 
 
 def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, Any]:
     """Train one agent as ``cfg`` says and return its run directory (and the trained SB3
     model if ``return_model``).
 
+    Everything (settings, hyperparameters, the env, the model or checkpoint) is checked, and
+    the model built once as a trial, before the run directory is created.
+
     Raises:
-        ValueError: invalid configuration (the message names the field and the valid values).
-        FileNotFoundError: ``resume_from`` or the hyperparameter file does not exist.
+        ConfigError: invalid configuration (a ``ValueError``; the message names the field, its
+            value and what is allowed; ``.field`` is the field).
+        TrainingInterrupted: Ctrl-C; the model, statistics and config were saved first.
     """
     import torch
-    from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback
+    from stable_baselines3.common.callbacks import EvalCallback
     from stable_baselines3.common.utils import set_random_seed
     from stable_baselines3.common.vec_env import VecNormalize
 
-    cfg.validate()
     torch.set_num_threads(1)
-    cls = _algo_class(cfg.algo)
-    hp = load_hyperparams(cfg.algo, cfg.env_id, cfg.hyperparams_file, cfg.hyperparams)
-    total = int(cfg.total_timesteps if cfg.total_timesteps is not None else float(hp["n_timesteps"]))
-    n_envs = int(cfg.n_envs if cfg.n_envs is not None else hp.get("n_envs", 1))
-    residual = cfg.residual_kwargs() if cfg.mode == "residual" else None
-    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    name = cfg.run_name or f"{cfg.algo}-{cfg.env_id}-{cfg.mode}-seed{cfg.seed}-{stamp}"
-    run = Path(cfg.out_dir) / name
-    if run.exists() and any(run.iterdir()):
-        raise ValueError(f"run directory {run} already exists and is not empty: choose another run_name/out_dir")
+    plan = _plan(cfg)
+    trial_venv, _ = _build(cfg, plan, None, None)  # raises ConfigError before anything is written
+    trial_venv.close()
+
+    run = plan.run
+    created = not run.exists()
     (run / "monitor").mkdir(parents=True, exist_ok=True)
-
-    set_random_seed(cfg.seed)
-    venv = _make_venv(cfg.env_id, cfg.env_kwargs, n_envs, cfg.seed, cfg.mode, residual, str(run / "monitor"),
-                      cfg.vec)
-    algo_kwargs = {k: v for k, v in hp.items() if k not in _ZOO_KEYS}
-    gamma = float(algo_kwargs.get("gamma", 0.99))
-    norm_kw = _normalize_kwargs(_eval_zoo(hp.get("normalize", False)), gamma)
-    if cfg.resume_from is not None:
-        vn_path = _vecnorm_for(Path(cfg.resume_from))
-        if norm_kw is not None and vn_path is not None:
-            venv = VecNormalize.load(str(vn_path), venv)
-            venv.training = True
-        elif norm_kw is not None:
-            venv = VecNormalize(venv, **norm_kw)
-    elif norm_kw is not None:
-        venv = VecNormalize(venv, **norm_kw)
-
-    tb = str(run / "tb") if cfg.tensorboard and _tensorboard_available() else None
-    if cfg.resume_from is not None:
-        model = cls.load(cfg.resume_from, env=venv, device="cpu", tensorboard_log=tb)
-    else:
-        noise = _action_noise(hp, venv.action_space.shape[0]) if cfg.algo in ("sac", "td3") else None
-        if noise is not None:
-            algo_kwargs["action_noise"] = noise
-        model = cls(hp.get("policy", "MlpPolicy"), venv, seed=cfg.seed, device="cpu", verbose=cfg.verbose,
-                    tensorboard_log=tb, policy_kwargs=hp.get("policy_kwargs"), **algo_kwargs)
-    start_steps = int(model.num_timesteps)
-    remaining = total - start_steps if cfg.resume_from is not None else total
-    if remaining <= 0:
-        raise ValueError(f"total_timesteps={total} is not beyond the checkpoint's {start_steps} steps: "
-                         f"give a larger total_timesteps to resume")
-
-    callbacks = []
-    if cfg.checkpoint_freq:
-        callbacks.append(CheckpointCallback(max(cfg.checkpoint_freq // n_envs, 1), str(run / "checkpoints"),
-                                            name_prefix="model", save_vecnormalize=True))
-    if cfg.eval_freq:
-        eval_env = _make_venv(cfg.env_id, cfg.env_kwargs, 1, cfg.eval_seed, cfg.mode, residual, None)
-        if norm_kw is not None:
-            eval_env = VecNormalize(eval_env, training=False, norm_obs=norm_kw.get("norm_obs", True),
-                                    norm_reward=False, gamma=gamma)
-        callbacks.append(EvalCallback(eval_env, n_eval_episodes=cfg.eval_episodes,
-                                      eval_freq=max(cfg.eval_freq // n_envs, 1), log_path=str(run / "eval"),
-                                      best_model_save_path=None, deterministic=True, verbose=0))
-    if cfg.max_minutes is not None:
-        callbacks.append(_wall_clock_callback(60.0 * cfg.max_minutes))
-
-    resolved = {"run": {**asdict(cfg), "total_timesteps": total, "n_envs": n_envs, "run_dir": str(run)},
-                "hyperparams": {k: (v if isinstance(v, (int, float, str, bool, list, dict, type(None))) else repr(v))
-                                for k, v in hp.items()},
-                "normalize": norm_kw, "residual": residual, "versions": versions()}
-    _write_yaml(run / "config.yaml", resolved)
+    try:
+        set_random_seed(cfg.seed)
+        tb = str(run / "tb") if cfg.tensorboard and _tensorboard_available() else None
+        venv, model = _build(cfg, plan, str(run / "monitor"), tb)
+        start_steps = int(model.num_timesteps)
+        remaining = plan.total - start_steps if cfg.resume_from is not None else plan.total
+        n_envs = plan.n_envs
+        callbacks = []
+        if cfg.checkpoint_freq:
+            callbacks.append(_checkpoint_callback(max(cfg.checkpoint_freq // n_envs, 1), str(run / "checkpoints")))
+        if cfg.eval_freq:
+            eval_env = _make_venv(cfg.env_id, cfg.env_kwargs, 1, cfg.eval_seed, cfg.mode, plan.residual, None)
+            if plan.norm_kw is not None:
+                eval_env = VecNormalize(eval_env, training=False, norm_obs=plan.norm_kw.get("norm_obs", True),
+                                        norm_reward=False, gamma=plan.gamma)
+            callbacks.append(EvalCallback(eval_env, n_eval_episodes=cfg.eval_episodes,
+                                          eval_freq=max(cfg.eval_freq // n_envs, 1), log_path=str(run / "eval"),
+                                          best_model_save_path=None, deterministic=True, verbose=0))
+        if cfg.max_minutes is not None:
+            callbacks.append(_wall_clock_callback(60.0 * cfg.max_minutes))
+        progress = _Progress(remaining, start_steps if cfg.resume_from is not None else 0, cfg.progress_bar)
+        callbacks.append(_progress_callback(progress))
+        resolved = {"run": {**asdict(cfg), "total_timesteps": plan.total, "n_envs": n_envs, "run_dir": str(run)},
+                    "hyperparams": {k: (v if isinstance(v, (int, float, str, bool, list, dict, type(None)))
+                                        else repr(v)) for k, v in plan.hp.items()},
+                    "normalize": plan.norm_kw, "residual": plan.residual, "versions": versions()}
+        _write_yaml(run / "config.yaml", resolved)
+    except BaseException:
+        if created:
+            shutil.rmtree(run, ignore_errors=True)  # nothing was trained: leave nothing behind
+        raise
 
     t0 = time.perf_counter()
-    model.learn(total_timesteps=remaining, callback=callbacks, progress_bar=cfg.progress_bar,
-                reset_num_timesteps=cfg.resume_from is None, tb_log_name="tb")
+    interrupted = False
+    try:
+        with _StopOnSigint() as sigint:
+            model.learn(total_timesteps=remaining, callback=[*callbacks, sigint.callback()], progress_bar=False,
+                        reset_num_timesteps=cfg.resume_from is None, tb_log_name="tb")
+        interrupted = sigint.requested
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        progress.close()
     elapsed = time.perf_counter() - t0
     model.save(run / "model.zip")
     if isinstance(venv, VecNormalize):
         venv.save(str(run / "vecnormalize.pkl"))
-    resolved["result"] = {"num_timesteps": int(model.num_timesteps), "start_timesteps": start_steps,
+        write_obs_stats(venv, run / "vecnormalize.json")
+    steps = int(model.num_timesteps)
+    resolved["result"] = {"num_timesteps": steps, "start_timesteps": start_steps,
                           "wall_clock_s": round(elapsed, 2),
-                          "steps_per_s": round((model.num_timesteps - start_steps) / max(elapsed, 1e-9), 1)}
+                          "steps_per_s": round((steps - start_steps) / max(elapsed, 1e-9), 1),
+                          "interrupted": interrupted}
     _write_yaml(run / "config.yaml", resolved)
+    if interrupted:
+        venv.close()
+        print(f"training interrupted at {steps:,} steps: model.zip, normalisation statistics and config.yaml "
+              f"(interrupted: true) saved in {run}", file=sys.stderr)
+        raise TrainingInterrupted(run, steps)
+    if steps > plan.total:
+        print(f"trained {steps - start_steps:,} steps ({plan.total - start_steps:,} asked: the algorithm collects "
+              "whole rollouts)", file=sys.stderr)
+    if cfg.final_eval:
+        score = _final_score(cfg, model, venv, resolved)
+        if score is not None:
+            resolved["result"]["final_score"] = score
+            _write_yaml(run / "config.yaml", resolved)
     venv.close()
     return (run, model) if return_model else run
 
 
+def _final_score(cfg: TrainConfig, model: Any, venv: Any, resolved: dict) -> dict | None:
+    """Score the final model on eval_episodes seeds (eval_seed, eval_seed + 1, ...) and print it."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    seeds = list(range(cfg.eval_seed, cfg.eval_seed + cfg.eval_episodes))
+    if cfg.env_id not in auv_follow_env.ENV_IDS:
+        print(f"final score: not computed ({cfg.env_id} is not an AUVFollow env)")
+        return None
+    stats = stats_from_vecnormalize(venv) if isinstance(venv, VecNormalize) else None
+    df = evaluate_agent(Agent(model, resolved, stats), seeds, progress=False)
+    score = {"seeds": seeds, "true_steady_mean_m": float(df["true_steady_mean"].mean()),
+             "true_full_mean_m": float(df["true_full_mean"].mean()), "return": float(df["return"].mean())}
+    print(f"final score on {cfg.env_id}, seeds {seeds[0]}-{seeds[-1]}: steady-state mean error to the true "
+          f"reference {score['true_steady_mean_m']:.4f} m (full run {score['true_full_mean_m']:.4f} m), "
+          f"mean return {score['return']:.1f}")
+    return score
+
+
 def _write_yaml(path: Path, data: dict) -> None:
-    with open(path, "w") as f:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as f:
         yaml.safe_dump(json.loads(json.dumps(data, default=str)), f, sort_keys=False)
+    tmp.replace(path)
 
 
 # --- loading and evaluation ---------------------------------------------------------------
@@ -373,12 +858,12 @@ def _write_yaml(path: Path, data: dict) -> None:
 class Agent:
     """A trained agent as a policy with SB3's ``predict`` protocol, over the observation of
     its (wrapped) env; ``env_wrapper`` is the wrapper to apply to a raw AUVFollow env (None
-    for a from-scratch agent). Observation normalisation (VecNormalize) is applied inside
+    for a from-scratch agent). Observation normalisation (``stats``) is applied inside
     :meth:`predict`.
     """
 
-    def __init__(self, model: Any, config: dict[str, Any], obs_rms: Any = None, clip_obs: float = 10.0,
-                 epsilon: float = 1e-8, name: str | None = None) -> None:
+    def __init__(self, model: Any, config: dict[str, Any], stats: ObsStats | None = None,
+                 name: str | None = None) -> None:
         self.model = model
         self.config = config
         run = config["run"]
@@ -387,7 +872,7 @@ class Agent:
         self.mode: str = run["mode"]
         self.residual: dict | None = config.get("residual")
         self.env_wrapper = _wrapper(self.mode, self.residual)
-        self._obs_rms, self._clip, self._eps = obs_rms, clip_obs, epsilon
+        self.stats = stats
         self.name = name or (f"{run['algo'].upper()}+{self.residual['controller']} (residual)"
                              if self.mode == "residual" else f"{run['algo'].upper()} (scratch)")
 
@@ -405,10 +890,7 @@ class Agent:
         return ResidualPolicy(self, spec, self.residual, name=self.name)
 
     def normalize(self, obs: np.ndarray) -> np.ndarray:
-        if self._obs_rms is None:
-            return obs
-        return np.clip((obs - self._obs_rms.mean) / np.sqrt(self._obs_rms.var + self._eps),
-                       -self._clip, self._clip).astype(np.float32)
+        return obs if self.stats is None else self.stats.normalize(obs)
 
     @property
     def recurrent(self) -> bool:
@@ -421,7 +903,17 @@ class Agent:
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool = True) -> tuple[np.ndarray, Any]:
-        obs = self.normalize(np.asarray(observation, dtype=np.float32))
+        obs = np.asarray(observation, dtype=np.float32)
+        width = self.model.observation_space.shape[-1]
+        if obs.ndim not in (1, 2) or obs.shape[-1] != width:
+            hint = ""
+            if self.mode == "residual":
+                hint = (f": a residual agent observes the {width}-wide wrapped observation (raw fields, base action, "
+                        "history); for raw AUVFollow observations use agent.raw_policy(), or run it in "
+                        "agent.env_wrapper(env)")
+            raise ValueError(f"observation has shape {obs.shape}: this agent expects ({width},) or (N, {width})"
+                             + hint)
+        obs = self.normalize(obs)
         if not self.recurrent:
             action, _ = self.model.predict(obs, deterministic=deterministic)
             return action, state
@@ -443,28 +935,48 @@ class Agent:
 def load_agent(path: str | Path, name: str | None = None) -> Agent:
     """Load a run directory (its ``model.zip``) or a ``.zip`` model/checkpoint inside a run.
 
+    The observation statistics are read from the JSON file beside the model
+    (``vecnormalize.json`` or ``<prefix>_vecnormalize_<steps>_steps.json``), never from a
+    pickle. The SB3 ``.zip`` itself can hold pickled objects: load only trusted files.
+
     Raises:
-        FileNotFoundError: no model file, or no ``config.yaml`` in the run directory.
+        FileNotFoundError: no model file (naming the newest checkpoint, if any), no
+            ``config.yaml``, or a run trained with normalisation whose statistics file is missing.
+        ValueError: a broken ``config.yaml``, model file or statistics file (naming the file).
     """
     p = Path(path)
     model_path = p / "model.zip" if p.is_dir() else p
     if not model_path.is_file():
-        raise FileNotFoundError(f"model file {model_path} does not exist: give a run directory or a model .zip")
-    run_dir = model_path.parent if model_path.name == "model.zip" else model_path.parent.parent
-    cfg_path = next((d / "config.yaml" for d in (model_path.parent, run_dir) if (d / "config.yaml").is_file()), None)
+        ckpts = _checkpoints(p) if p.is_dir() else []
+        hint = (f"; the run has no final model (interrupted or still training?): its newest checkpoint is "
+                f"{ckpts[-1]}" if ckpts else ": give a run directory or a model .zip")
+        raise FileNotFoundError(f"model file {model_path} does not exist{hint}")
+    cfg_path = _run_config_path(model_path)
     if cfg_path is None:
-        raise FileNotFoundError(f"no config.yaml next to {model_path} or in {run_dir}: not a run directory")
-    with open(cfg_path) as f:
-        config = yaml.safe_load(f)
-    model = _algo_class(config["run"]["algo"]).load(str(model_path), device="cpu")
-    obs_rms, clip_obs, eps = None, 10.0, 1e-8
-    vn = _vecnorm_for(model_path)
-    if vn is not None:
-        with open(vn, "rb") as f:
-            stats = pickle.load(f)
-        if getattr(stats, "norm_obs", False):
-            obs_rms, clip_obs, eps = stats.obs_rms, stats.clip_obs, stats.epsilon
-    return Agent(model, config, obs_rms, clip_obs, eps, name=name)
+        raise FileNotFoundError(f"no config.yaml next to {model_path} or in {model_path.parent.parent}: "
+                                "not a run directory")
+    config = read_run_config(cfg_path)
+    stats = None
+    norm = config.get("normalize")
+    if norm is not None and norm.get("norm_obs", True):
+        json_path = _stats_path(model_path, ".json")
+        if not json_path.is_file():
+            pkl = json_path.with_suffix(".pkl")
+            convert = (f"; {pkl} exists: if you trust it like code, convert it with "
+                       f"`python -m agents.obs_stats {pkl}`" if pkl.is_file() else "")
+            raise FileNotFoundError(f"observation-normalisation statistics {json_path} are missing: the agent was "
+                                    f"trained with normalize={norm} ({cfg_path}) and gives wrong actions without "
+                                    f"them{convert}")
+        stats = read_obs_stats(json_path)
+    try:
+        model = _algo_class(config["run"]["algo"]).load(str(model_path), device="cpu")
+    except Exception as exc:  # noqa: BLE001 (zipfile, pickle, torch and SB3 errors alike)
+        algo = config["run"]["algo"]
+        raise ValueError(f"{model_path} is not a {algo} model SB3 can load: {_one_line(exc)}") from None
+    if stats is not None and stats.mean.shape != model.observation_space.shape:
+        raise ValueError(f"{_stats_path(model_path, '.json')} has statistics for {stats.mean.shape} observations, "
+                         f"the model observes {model.observation_space.shape}")
+    return Agent(model, config, stats, name=name)
 
 
 def evaluate_agent(agent: Agent | str | Path, seeds: Any = range(1000, 1010), *, env_id: str | None = None,

@@ -12,6 +12,7 @@ window is t >= 10 s.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
@@ -24,7 +25,8 @@ import auv_follow_env  # noqa: F401  (registers the ids)
 from auv_follow_env.metrics import METRIC_KEYS, tracking_metrics
 from auv_follow_env.params import TaskSpec
 
-__all__ = ["evaluate", "evaluate_controllers", "METRIC_COLUMNS", "TRAJECTORY_COLUMNS"]
+__all__ = ["evaluate", "evaluate_controllers", "evaluate_batched", "check_task_spec", "METRIC_COLUMNS",
+           "TRAJECTORY_COLUMNS", "SPEC_FIELDS"]
 
 METRIC_COLUMNS: tuple[str, ...] = tuple(f"{ref}_{k}" for ref in ("true", "own") for k in METRIC_KEYS)
 TRAJECTORY_COLUMNS: tuple[str, ...] = (
@@ -36,6 +38,44 @@ TRAJECTORY_COLUMNS: tuple[str, ...] = (
 
 #: gym.make keywords that are not env configuration
 _MAKE_ONLY_KWARGS = frozenset({"max_episode_steps", "disable_env_checker", "render_mode", "autoreset"})
+
+
+#: TaskSpec fields a scripted policy uses: they must be equal to the env's
+SPEC_FIELDS: tuple[str, ...] = ("dt", "delay_s", "delay_steps", "p_d", "psi_d", "nominal", "force_limits")
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, (tuple, list)) or isinstance(b, (tuple, list)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    return a == b
+
+
+def check_task_spec(policy: Any, spec: TaskSpec, env_id: str = "the env") -> None:
+    """Raise ``ValueError`` if ``policy`` was built for another task than ``spec``.
+
+    Applies to policies with a ``spec`` attribute that is a :class:`TaskSpec` (the scripted
+    controllers, :class:`agents.residual.ResidualPolicy`); compares :data:`SPEC_FIELDS`, the
+    facts such a policy computes with (its delay, rate, offset, nominal model, force limits).
+    Other policies are not checked.
+    """
+    own = getattr(policy, "spec", None)
+    if not isinstance(own, TaskSpec):
+        return
+    bad = [f for f in SPEC_FIELDS if not _same(getattr(own, f), getattr(spec, f))]
+    if bad:
+        diffs = "; ".join(f"{f}: policy {getattr(own, f)!r}, env {getattr(spec, f)!r}" for f in bad)
+        name = getattr(policy, "name", type(policy).__name__)
+        raise ValueError(f"policy {name!r} was built for another task than {env_id} ({diffs}): build it with "
+                         f"that env's env.unwrapped.task_spec")
+
+
+def _bar(iterable: Iterable, desc: str, progress: bool, nested: bool = False, **kw: Any):
+    """tqdm over ``iterable`` if ``progress``; off for nested bars when stderr is not a terminal
+    (no cursor-movement escape codes in logs), and plain lines rarely for the outer ones."""
+    tty = sys.stderr.isatty()
+    disable = not progress or (nested and not tty)
+    return tqdm(iterable, desc=desc, disable=disable, leave=not nested, mininterval=0.1 if tty else 30.0,
+                ascii=not tty, **kw)
 
 
 def _check_seeds(seeds: Iterable[int]) -> list[int]:
@@ -106,13 +146,18 @@ def evaluate(policy: Any, env_id: str = "AUVFollow-S4-v0", seeds: Iterable[int] 
     seeds = _check_seeds(seeds)
     env = gym.make(env_id, **(env_kwargs or {}))
     spec: TaskSpec = env.unwrapped.task_spec
+    try:
+        check_task_spec(policy, spec, env_id)
+    except ValueError:
+        env.close()
+        raise
     if env_wrapper is not None:
         env = env_wrapper(env)
     name = policy_name or getattr(policy, "name", None) or type(policy).__name__
     has_ref = hasattr(policy, "reference")
     limits = np.asarray(spec.force_limits)
     rows, trajs = [], []
-    for seed in tqdm(seeds, desc=f"{name} on {env_id}", disable=not progress, leave=False):
+    for seed in _bar(seeds, f"{name} on {env_id}", progress, nested=True):
         obs, info = env.reset(seed=seed)
         state, start = None, np.ones(1, dtype=bool)
         rec: dict[str, list] = {k: [] for k in ("pose", "target", "ref", "err", "own", "force")}
@@ -165,7 +210,7 @@ def evaluate_controllers(names: Sequence[str] | None = None,
     cfg_kwargs = {k: v for k, v in (env_kwargs or {}).items() if k not in _MAKE_ONLY_KWARGS}
     ms, ts = [], []
     if batched:
-        for sc in tqdm(scenarios, desc="scenarios", disable=not progress):
+        for sc in _bar(scenarios, "scenarios", progress):
             spec = auv_follow_env.make_task_spec(sc, **cfg_kwargs)
             out = evaluate_batched([make_controller(n, spec) for n in names], f"AUVFollow-{sc}-v0", seeds,
                                    env_kwargs=env_kwargs, trajectories=trajectories, progress=progress)
@@ -174,7 +219,7 @@ def evaluate_controllers(names: Sequence[str] | None = None,
                 ts.append(out[1])
     else:
         jobs = [(sc, n) for sc in scenarios for n in names]
-        for sc, n in tqdm(jobs, desc="controllers x scenarios", disable=not progress):
+        for sc, n in _bar(jobs, "controllers x scenarios", progress):
             spec = auv_follow_env.make_task_spec(sc, **cfg_kwargs)
             out = evaluate(make_controller(n, spec), f"AUVFollow-{sc}-v0", seeds, env_kwargs=env_kwargs,
                            trajectories=trajectories, progress=False)
@@ -207,6 +252,12 @@ def evaluate_batched(policies: Sequence[Any], env_id: str = "AUVFollow-S4-v0", s
     n = S * P
     venv = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", **(env_kwargs or {}))
     spec: TaskSpec = venv.unwrapped.task_spec if hasattr(venv, "unwrapped") else venv.task_spec
+    try:
+        for p in policies:
+            check_task_spec(p, spec, env_id)
+    except ValueError:
+        venv.close()
+        raise
     obs, _ = venv.reset(seed=[s for _ in range(P) for s in seeds])
     limits = np.asarray(spec.force_limits)
     T = spec.n_steps
@@ -224,7 +275,7 @@ def evaluate_batched(policies: Sequence[Any], env_id: str = "AUVFollow-S4-v0", s
     ret = np.zeros(n)
     start = np.ones(S, dtype=bool)
     actions = np.zeros((n, 3), dtype=np.float32)
-    for k in tqdm(range(T), desc=f"{P} policies x {S} seeds on {env_id}", disable=not progress, leave=False):
+    for k in _bar(range(T), f"{P} policies x {S} seeds on {env_id}", progress, nested=True):
         for p, blk in enumerate(blocks):
             actions[blk], _ = policies[p].predict(obs[blk], state=None, episode_start=start,
                                                   deterministic=deterministic)

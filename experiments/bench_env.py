@@ -32,6 +32,7 @@ import gymnasium as gym
 import numpy as np
 
 import auv_follow_env  # noqa: F401  (registers the ids)
+from experiments.outputs import output_path
 
 ENVS = ("AUVFollow-S4-v0", "AUVFollow-Hard-v1", "Pendulum-v1")
 ROOT = Path(__file__).resolve().parents[1]
@@ -91,8 +92,10 @@ def main(argv: list[str] | None = None) -> str:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=int, default=200_000, help="steps per measurement (default 200000)")
     ap.add_argument("--repeats", type=int, default=3, help="interleaved repetitions (default 3)")
-    ap.add_argument("--out", type=Path, default=ROOT / "results" / "bench_env.md")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="Markdown output (default: results/bench_env.md; results/tmp/ with non-default settings)")
     args = ap.parse_args(argv)
+    args.out = output_path(args, ap, ROOT / "results" / "bench_env.md")
     if args.steps < 1 or args.repeats < 1:
         ap.error("--steps and --repeats must be >= 1")
 

@@ -19,6 +19,7 @@ import numpy as np
 import auv_follow_env
 from controllers import make_controller
 from controllers.evaluation import evaluate_controllers
+from experiments.outputs import output_path
 
 
 def run_batched(n: int, chunk: int) -> tuple[float, float]:
@@ -66,8 +67,11 @@ def main(argv: list[str] | None = None) -> str:
     p.add_argument("--episodes", type=int, default=10_000, help="Monte Carlo episodes (default 10000)")
     p.add_argument("--chunk", type=int, default=10_000, help="envs per vector env (default 10000)")
     p.add_argument("--loop-sample", type=int, default=20, help="single-env episodes measured (default 20)")
-    p.add_argument("--out", type=Path, default=Path("results/bench_montecarlo.md"))
+    p.add_argument("--out", type=Path, default=None,
+                   help="Markdown output (default: results/bench_montecarlo.md; results/tmp/ with non-default "
+                        "settings)")
     a = p.parse_args(argv)
+    a.out = output_path(a, p, Path("results/bench_montecarlo.md"))
     for name in ("episodes", "chunk", "loop_sample"):
         if getattr(a, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1")

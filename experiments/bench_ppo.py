@@ -20,6 +20,7 @@ import gymnasium as gym
 import numpy as np
 
 import auv_follow_env  # noqa: F401  (registers the ids)
+from experiments.outputs import output_path
 
 ENVS = ("AUVFollow-S4-v0", "Pendulum-v1")
 
@@ -60,8 +61,10 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--timesteps", type=int, default=20_000, help="PPO timesteps per (env, n_envs) run")
     p.add_argument("--n-envs", type=int, nargs="+", default=[8, 1])
     p.add_argument("--repeats", type=int, default=3, help="interleaved repetitions; the median is reported")
-    p.add_argument("--out", default="results/bench_ppo.md")
+    p.add_argument("--out", default=None,
+                   help="Markdown output (default: results/bench_ppo.md; results/tmp/ with non-default settings)")
     a = p.parse_args(argv)
+    a.out = output_path(a, p, Path("results/bench_ppo.md"))
     if a.timesteps <= 0:
         p.error(f"--timesteps={a.timesteps} is invalid: must be positive")
     if a.repeats <= 0:

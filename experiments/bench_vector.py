@@ -31,6 +31,7 @@ import numpy as np
 import auv_follow_env  # noqa: F401  (registers the ids)
 from auv_follow_env import dynamics as dyn
 from auv_follow_env.sim import BatchSim
+from experiments.outputs import output_path
 
 
 @dataclass
@@ -63,13 +64,16 @@ def parse_args(argv: list[str] | None = None) -> Args:
     p.add_argument("--budget", type=float, default=Args.budget, help="timed seconds per cell")
     p.add_argument("--max-sync-envs", type=int, default=Args.max_sync_envs,
                    help="largest N for SyncVectorEnv (default %(default)s)")
-    p.add_argument("--out", type=Path, default=Args.out, help="Markdown output file")
+    p.add_argument("--out", type=Path, default=None,
+                   help="Markdown output file (default: results/bench_vector.md; results/tmp/ with non-default "
+                        "settings)")
     p.add_argument("--seed", type=int, default=Args.seed, help="seed of envs and actions")
     p.add_argument("--no-parallel", dest="parallel", action="store_false",
                    help="skip the parallel=True column (numba threads)")
     a = p.parse_args(argv)
     if a.budget <= 0 or any(n < 1 for n in a.sizes):
         p.error("--budget must be > 0 and --sizes >= 1")
+    a.out = output_path(a, p, Args.out)
     return Args(**vars(a))
 
 

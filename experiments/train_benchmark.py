@@ -24,6 +24,7 @@ import yaml
 
 from agents.compare import compare, plot_learning_curves, summary_markdown
 from agents.train import TrainConfig, load_agent, train, versions
+from experiments.outputs import output_path
 
 
 @dataclass
@@ -55,11 +56,14 @@ def parse(argv: list[str] | None = None) -> Args:
     p.add_argument("--residual-seed", type=int, default=d.residual_seed)
     p.add_argument("--scratch-seed", type=int, default=d.scratch_seed)
     p.add_argument("--test-seeds", type=int, nargs="+", default=d.test_seeds)
-    p.add_argument("--out", default=d.out)
+    p.add_argument("--out", default=None,
+                   help="report directory, runs in <out>/runs (default: results/agents; results/tmp/agents with "
+                        "non-default settings)")
     p.add_argument("--residual-run", default=None)
     p.add_argument("--scratch-run", default=None)
     p.add_argument("--no-progress", dest="progress", action="store_false")
     a = p.parse_args(argv)
+    a.out = str(output_path(a, p, Path(d.out), ignore=("progress", "stage")))
     return Args(**vars(a))
 
 

@@ -15,7 +15,7 @@ from agents.train import TrainConfig, load_agent, load_hyperparams, train
 from controllers import make_controller
 
 ENV = "AUVFollow-S4-v0"
-_TINY = {"checkpoint_freq": 0, "eval_freq": 0, "progress_bar": False, "tensorboard": False}
+_TINY = {"checkpoint_freq": 0, "eval_freq": 0, "progress_bar": False, "tensorboard": False, "final_eval": False}
 
 
 def _tiny_ppo(tmp_path, **kw) -> TrainConfig:
@@ -107,6 +107,7 @@ def test_train_save_load_same_actions(tmp_path, algo, mode):
                                        "gradient_steps": 1}, **_TINY)
     run, model = train(cfg, return_model=True)
     assert (run / "model.zip").is_file() and (run / "vecnormalize.pkl").is_file()
+    assert (run / "vecnormalize.json").is_file()
     conf = yaml.safe_load((run / "config.yaml").read_text())
     assert conf["run"]["algo"] == algo and conf["result"]["num_timesteps"] >= cfg.total_timesteps
     assert {"python", "torch", "stable_baselines3", "gymnasium", "numpy", "git_commit"} <= set(conf["versions"])
@@ -136,6 +137,7 @@ def test_resume_continues_step_count(tmp_path):
     run = train(_tiny_ppo(tmp_path, total_timesteps=1024, checkpoint_freq=512, run_name="first"))
     ckpt = run / "checkpoints" / "model_512_steps.zip"
     assert ckpt.is_file() and (run / "checkpoints" / "model_vecnormalize_512_steps.pkl").is_file()
+    assert (run / "checkpoints" / "model_vecnormalize_512_steps.json").is_file()
     run2, model = train(_tiny_ppo(tmp_path, total_timesteps=2048, resume_from=str(ckpt), run_name="second"),
                         return_model=True)
     res = yaml.safe_load((run2 / "config.yaml").read_text())["result"]
@@ -161,7 +163,13 @@ def test_cli_end_to_end(tmp_path, capsys):
           "--run-name", "cli", "--seed", "4", "--env-kwarg", "disturbance=L1"])
     run = tmp_path / "cli"
     assert (run / "model.zip").is_file() and (run / "eval" / "evaluations.npz").is_file()
-    assert yaml.safe_load((run / "config.yaml").read_text())["run"]["env_kwargs"] == {"disturbance": "L1"}
+    conf = yaml.safe_load((run / "config.yaml").read_text())
+    assert conf["run"]["env_kwargs"] == {"disturbance": "L1"}
+    # the final score: eval_episodes=1 episode from eval_seed 500, printed and recorded
+    assert conf["result"]["interrupted"] is False and conf["result"]["final_score"]["seeds"] == [500]
+    out = capsys.readouterr().out
+    assert "final score on AUVFollow-S4-v0, seeds 500-500" in out
+    assert f"{conf['result']['final_score']['true_steady_mean_m']:.4f} m" in out
     csv = tmp_path / "eval.csv"
     main(["evaluate", str(run), "--seeds", "1000", "--out", str(csv), "--no-progress"])
     assert csv.is_file()
@@ -169,12 +177,13 @@ def test_cli_end_to_end(tmp_path, capsys):
           "--out", str(tmp_path / "cmp"), "--no-progress"])
     for f in ("compare.csv", "compare_summary.csv", "compare.md", "compare.png"):
         assert (tmp_path / "cmp" / f).is_file()
+    out = capsys.readouterr().out
+    assert "| PROPOSED |" in out and f"in {tmp_path / 'cmp'}/" in out  # the table, and where it wrote
     import pandas as pd
 
     df = pd.read_csv(tmp_path / "cmp" / "compare.csv")
     assert len(df) == 6 and df.loc[df.policy.str.contains("residual"), "own_steady_mean"].isna().all()
     assert df.loc[df.policy == "PROPOSED", "own_steady_mean"].notna().all()
-    assert "PROPOSED" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("argv,needle", [
@@ -205,7 +214,7 @@ def test_library_errors(tmp_path):
         TrainConfig(total_timesteps=0).validate()
     with pytest.raises(FileNotFoundError, match="does not exist"):
         load_agent(tmp_path / "missing.zip")
-    with pytest.raises(FileNotFoundError, match="resume_from"):
+    with pytest.raises(ValueError, match="resume_from=.*missing.zip.*no such model file"):
         TrainConfig(resume_from=str(tmp_path / "missing.zip")).validate()
 
 

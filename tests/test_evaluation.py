@@ -189,3 +189,32 @@ def test_s4_prediction_removes_most_of_the_lag(s4_full):
     assert s4_full["PROPOSED"]["true_steady_mean"] < 0.3 * d_tau
     # measured against its own (delayed) reference, ROBUST_ONLY does not see the lag
     assert s4_full["ROBUST_ONLY"]["own_steady_mean"] < 0.3 * d_tau
+
+
+def test_evaluate_refuses_a_controller_built_for_another_task():
+    # PROPOSED built for S4 (tau = 2 s) run on S4 with tau = 1 s: delay_s and delay_steps differ
+    policy = make_controller("PROPOSED", auv_follow_env.make_task_spec("S4"))
+    for run in (lambda: evaluate(policy, "AUVFollow-S4-v0", [0], env_kwargs={"delay_s": 1.0}, progress=False),
+                lambda: evaluate_batched([policy], "AUVFollow-S4-v0", [0], env_kwargs={"delay_s": 1.0},
+                                         progress=False)):
+        with pytest.raises(ValueError, match=r"delay_s: policy 2.0, env 1.0; delay_steps: policy 40, env 20") as e:
+            run()
+        assert "p_d" not in str(e.value) and "task_spec" in str(e.value)
+    other_limits = auv_follow_env.make_task_spec("S1", episode_s=12.0, force_limits=[100.0, 150.0, 30.0])
+    with pytest.raises(ValueError, match=r"^policy 'PID' .*force_limits: policy \(100.0, 150.0, 30.0\)"):
+        evaluate(make_controller("PID", other_limits), "AUVFollow-S1-v0", [0], env_kwargs=SHORT, progress=False)
+
+
+def test_evaluate_accepts_a_spec_that_differs_only_in_unused_fields():
+    # episode length and scenario name are not used by the controller: S1's spec on AUVFollow-v0 with S1 settings
+    spec = auv_follow_env.make_task_spec("S1", episode_s=60.0)
+    m = evaluate(make_controller("PID", spec), "AUVFollow-S1-v0", [0], env_kwargs=SHORT, progress=False)
+    assert len(m) == 1 and m["steps"].iloc[0] == 240
+
+
+def test_progress_in_a_log_has_no_nested_bars_or_cursor_codes(capsys):
+    # stderr captured by pytest is not a terminal: only the outer bar, no cursor-movement escape codes
+    evaluate_controllers(["PID"], scenarios=("S1",), seeds=[0], env_kwargs=SHORT, progress=True)
+    err = capsys.readouterr().err
+    assert "scenarios" in err  # the outer bar is kept
+    assert "policies x" not in err and "\x1b[" not in err

@@ -451,9 +451,12 @@ def test_docs_tier_table_is_the_generated_one_and_snippets_run():
 
     from auv_follow_env.tiers import tier_summary_markdown
 
-    text = (Path(__file__).resolve().parents[1] / "docs" / "tiers.md").read_text()
-    block = text.split("<!-- tier-summary")[1].split("-->", 1)[1].split("<!-- /tier-summary -->")[0]
-    assert block.strip() == tier_summary_markdown().strip()
+    root = Path(__file__).resolve().parents[1]
+    for doc in ("README.md", "docs/tiers.md"):
+        page = (root / doc).read_text()
+        block = page.split("<!-- tier-summary")[1].split("-->", 1)[1].split("<!-- /tier-summary -->")[0]
+        assert block.strip() == tier_summary_markdown().strip(), doc
+    text = (root / "docs" / "tiers.md").read_text()
     for code in text.split("```python")[1:]:
         code = code.split("```")[0]
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)

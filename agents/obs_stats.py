@@ -1,0 +1,161 @@
+"""Observation-normalisation statistics in a file format that runs no code when read.
+
+SB3 saves a ``VecNormalize`` wrapper with :mod:`pickle`: loading such a file can execute
+arbitrary code. Evaluation needs only four things from it (the running mean and variance of
+the observations, the clip bound and epsilon), so training writes those, next to SB3's
+pickle, as JSON (``vecnormalize.json``; checkpoints ``model_vecnormalize_<steps>_steps.json``)
+and :func:`agents.train.load_agent` reads only that. SB3's pickle is kept for resuming
+training (``--resume``), which must restore the complete wrapper.
+
+Convert a pickle you trust (for instance a run trained before this format existed)::
+
+    python -m agents.obs_stats runs/<run>/vecnormalize.pkl   # writes runs/<run>/vecnormalize.json
+
+That command unpickles the file: run it only on files you would run as code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["ObsStats", "FORMAT", "write_obs_stats", "read_obs_stats", "stats_from_vecnormalize",
+           "json_path_for", "convert_pickle", "main"]
+
+#: identifies the file format (written into every file, checked on reading)
+FORMAT = "auv-follow/obs-normalization/v1"
+
+
+@dataclass(frozen=True)
+class ObsStats:
+    """What evaluation needs of a VecNormalize wrapper: ``clip((obs - mean) / sqrt(var + epsilon),
+    -clip_obs, clip_obs)`` when ``norm_obs`` (SB3's ``VecNormalize.normalize_obs``)."""
+
+    norm_obs: bool  #: observations are normalised (False: pass them through)
+    mean: np.ndarray  #: running mean of the observations (float64, shape of one observation)
+    var: np.ndarray  #: running variance of the observations (same shape, >= 0)
+    count: float  #: samples behind the running statistics
+    clip_obs: float  #: bound of the normalised observation (> 0)
+    epsilon: float  #: added to the variance (> 0)
+
+    def normalize(self, obs: np.ndarray) -> np.ndarray:
+        """The normalised observation(s), float32 (unchanged if not ``norm_obs``)."""
+        if not self.norm_obs:
+            return obs
+        return np.clip((obs - self.mean) / np.sqrt(self.var + self.epsilon), -self.clip_obs,
+                       self.clip_obs).astype(np.float32)
+
+
+def stats_from_vecnormalize(venv: Any) -> ObsStats:
+    """The statistics of an SB3 ``VecNormalize`` (flat Box observations only)."""
+    rms = venv.obs_rms
+    if isinstance(rms, dict):
+        raise ValueError("VecNormalize with dict observations is not supported: AUVFollow observations are flat")
+    return ObsStats(norm_obs=bool(venv.norm_obs), mean=np.asarray(rms.mean, dtype=np.float64),
+                    var=np.asarray(rms.var, dtype=np.float64), count=float(rms.count),
+                    clip_obs=float(venv.clip_obs), epsilon=float(venv.epsilon))
+
+
+def write_obs_stats(stats: ObsStats | Any, path: str | Path) -> Path:
+    """Write ``stats`` (an :class:`ObsStats` or an SB3 ``VecNormalize``) as JSON; returns the path.
+
+    Floats are written with :func:`repr` precision, so reading gives the same float64 values.
+    """
+    if not isinstance(stats, ObsStats):
+        stats = stats_from_vecnormalize(stats)
+    path = Path(path)
+    data = {"format": FORMAT, "norm_obs": stats.norm_obs, "clip_obs": stats.clip_obs, "epsilon": stats.epsilon,
+            "count": stats.count, "mean": stats.mean.tolist(), "var": stats.var.tolist()}
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1) + "\n")
+    tmp.replace(path)  # never leave a half-written file behind
+    return path
+
+
+def _number(data: dict, key: str, path: Path, positive: bool = True) -> float:
+    v = data.get(key)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or (positive and v <= 0):
+        raise ValueError(f"{path}: {key}={v!r} is invalid: must be a finite number{' > 0' if positive else ''}")
+    return float(v)
+
+
+def read_obs_stats(path: str | Path) -> ObsStats:
+    """Read a file written by :func:`write_obs_stats` (plain JSON: nothing is executed).
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: the file is not valid JSON of this format (the message names the file and field).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"observation-normalisation statistics {path} do not exist")
+    try:
+        data = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path} is not a normalisation-statistics JSON file: {exc}") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        got = data.get("format") if isinstance(data, dict) else type(data).__name__
+        raise ValueError(f"{path} is not a normalisation-statistics file: format={got!r}, expected {FORMAT!r}")
+    if not isinstance(data.get("norm_obs"), bool):
+        raise ValueError(f"{path}: norm_obs={data.get('norm_obs')!r} is invalid: must be true or false")
+    arrays = {}
+    for key in ("mean", "var"):
+        try:
+            a = np.asarray(data.get(key), dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}: {key} is invalid: must be a list of numbers") from None
+        if a.ndim != 1 or a.size == 0 or not np.isfinite(a).all():
+            raise ValueError(f"{path}: {key} is invalid: must be a non-empty list of finite numbers")
+        arrays[key] = a
+    if arrays["mean"].shape != arrays["var"].shape:
+        raise ValueError(f"{path}: mean has {arrays['mean'].size} entries but var has {arrays['var'].size}")
+    if (arrays["var"] < 0).any():
+        raise ValueError(f"{path}: var is invalid: must be >= 0")
+    return ObsStats(norm_obs=data["norm_obs"], mean=arrays["mean"], var=arrays["var"],
+                    count=_number(data, "count", path, positive=False),
+                    clip_obs=_number(data, "clip_obs", path), epsilon=_number(data, "epsilon", path))
+
+
+def json_path_for(pickle_path: str | Path) -> Path:
+    """``.../vecnormalize.pkl`` -> ``.../vecnormalize.json`` (same for checkpoint names)."""
+    return Path(pickle_path).with_suffix(".json")
+
+
+def convert_pickle(pickle_path: str | Path, json_path: str | Path | None = None) -> Path:
+    """Write the JSON statistics of an SB3 ``VecNormalize`` pickle (next to it by default).
+
+    This *unpickles* ``pickle_path``: use it only on files you trust like code.
+    """
+    import pickle
+
+    pickle_path = Path(pickle_path)
+    with open(pickle_path, "rb") as f:
+        venv = pickle.load(f)  # noqa: S301 (trusted file, see the docstring)
+    if not hasattr(venv, "obs_rms") or not hasattr(venv, "clip_obs"):
+        raise ValueError(f"{pickle_path} does not hold a VecNormalize (got {type(venv).__name__})")
+    return write_obs_stats(venv, json_path if json_path is not None else json_path_for(pickle_path))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m agents.obs_stats", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("pickles", nargs="+", type=Path, help="VecNormalize .pkl files you trust (they are unpickled)")
+    args = p.parse_args(argv)
+    for pkl in args.pickles:
+        if not pkl.is_file():
+            p.error(f"argument pickles: {pkl} does not exist")
+    for pkl in args.pickles:
+        print(f"wrote {convert_pickle(pkl)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
