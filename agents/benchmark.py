@@ -430,7 +430,7 @@ def _entry_key(spec: PolicySpec, run: str | None, env_id: str, seeds: Sequence[i
                          "controller": spec.controller, "label": spec.label, "code": code,
                          "numpy": np.__version__}).encode())
     if run is not None:
-        for f in ("model.zip", "vecnormalize.pkl", "config.yaml"):
+        for f in ("model.zip", "vecnormalize.json", "vecnormalize.pkl", "config.yaml"):
             fp = Path(run) / f
             if fp.is_file():
                 h.update(fp.read_bytes())
