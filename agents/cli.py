@@ -201,6 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", default="results/tmp/compare", help="directory for the outputs (created if needed)")
     c.add_argument("--name", default="compare", help="file name stem of the outputs")
     c.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+    _add_benchmark_commands(sub)
     return p
 
 
@@ -285,6 +286,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``auv-follow`` console script."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    if getattr(args, "handler", None) is not None:  # benchmark, report, sweep
+        return _run_handler(args, parser)
     try:
         {"train": _train, "evaluate": _evaluate, "compare": _compare}[args.command](args)
     except _Refused as exc:
@@ -297,6 +300,91 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"auv-follow {args.command}: interrupted", file=sys.stderr)
         return 130
+    return 0
+
+
+# --- benchmark, report, sweep (issue 12) --------------------------------------------------
+
+def _add_benchmark_commands(sub: Any) -> None:
+    """The ``benchmark``, ``report`` and ``sweep`` subcommands (each sets ``handler``)."""
+    from agents.benchmark import DEFAULT_RESAMPLES
+
+    b = sub.add_parser("benchmark", help="score policies on the tiers' test seeds: per-episode table + leaderboard")
+    b.add_argument("--policies", nargs="+", default=None, metavar="POLICY",
+                   help="controller names, 'classical' (every scripted controller), run directories, "
+                        "directories of runs, or label=run,run (default: classical)")
+    b.add_argument("--tiers", nargs="+", default=["S4"], metavar="TIER",
+                   help="S1..S4 (paper scenarios) and/or Easy, Medium, Hard, Extreme (v1 tiers)")
+    b.add_argument("--seeds", type=_seeds, default=None,
+                   help="override the published test seeds (quick looks only), e.g. 1000-1009")
+    b.add_argument("--out", default="results/benchmark", help="output directory")
+    b.add_argument("--resamples", type=_positive_int, default=DEFAULT_RESAMPLES, help="bootstrap resamples")
+    b.add_argument("--bootstrap-seed", type=int, default=0)
+    b.add_argument("--unbatched", dest="batched", action="store_false",
+                   help="one single-env episode at a time instead of one native vector env")
+    b.add_argument("--cache", dest="cache_dir", default=None,
+                   help="directory of per-run episode caches (reused while the episode code equals git HEAD)")
+    b.add_argument("--no-progress", dest="progress", action="store_false")
+    b.set_defaults(handler=_cmd_benchmark)
+
+    r = sub.add_parser("report", help="one self-contained HTML page from a benchmark directory")
+    r.add_argument("--bench", default="results/benchmark", help="directory written by `auv-follow benchmark`")
+    r.add_argument("--out", default=None, help="HTML file (default: <bench>/report.html)")
+    r.add_argument("--replay-policy", default=None, help="policy label of the episode replay (default: best)")
+    r.add_argument("--replay-tier", default=None, help="tier of the replay and the time plots (default: Hard or "
+                                                       "the last tier)")
+    r.add_argument("--replay-seed", type=int, default=None, help="test seed of the replay (default: the first)")
+    r.set_defaults(handler=_cmd_report)
+
+    s = sub.add_parser("sweep", help="Ray Tune sweep: algorithm x hyperparameters x training seed x tier")
+    s.add_argument("--config", default=None, help="YAML search space (default: a small built-in grid)")
+    s.add_argument("--name", default="auv-follow-sweep", help="experiment name (resume key)")
+    s.add_argument("--storage", default="results/sweeps", help="directory of the Ray Tune experiment")
+    s.add_argument("--address", default=None, help="existing Ray cluster (default: RAY_ADDRESS or local Ray)")
+    s.add_argument("--timesteps", type=_positive_int, default=None, help="env steps per trial")
+    s.add_argument("--chunks", type=_positive_int, default=None, help="reports (and checkpoints) per trial")
+    s.add_argument("--num-samples", type=_positive_int, default=1, help="samples of the search space")
+    s.add_argument("--cpus-per-trial", type=_positive_float, default=1.0)
+    s.add_argument("--no-resume", dest="resume", action="store_false", help="start afresh even if resumable")
+    s.set_defaults(handler=_cmd_sweep)
+
+
+def _cmd_benchmark(args: argparse.Namespace) -> None:
+    import shlex
+
+    from agents.benchmark import benchmark, goal_check
+
+    res = benchmark(args.policies, args.tiers, seeds=args.seeds, out_dir=args.out, n_resamples=args.resamples,
+                    bootstrap_seed=args.bootstrap_seed, batched=args.batched, progress=args.progress,
+                    cache_dir=args.cache_dir,
+                    command="auv-follow " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["benchmark"] else None)
+    print(res.files["leaderboard_md"].read_text() if res.files else res.leaderboard.to_string())
+    if "Hard" in set(res.leaderboard["tier"]):
+        print(goal_check(res.leaderboard))
+    print(f"written: {', '.join(str(p) for p in res.files.values())}")
+
+
+def _cmd_report(args: argparse.Namespace) -> None:
+    from agents.report import write_report
+
+    path = write_report(args.bench, args.out, replay_policy=args.replay_policy, replay_tier=args.replay_tier,
+                        replay_seed=args.replay_seed)
+    print(f"report: {path}")
+
+
+def _cmd_sweep(args: argparse.Namespace) -> None:
+    from agents.sweep import SweepConfig, sweep
+
+    cfg = SweepConfig.from_args(args)
+    best = sweep(cfg)
+    print(best.to_string() if hasattr(best, "to_string") else best)
+
+
+def _run_handler(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    try:
+        args.handler(args)
+    except (ValueError, FileNotFoundError) as exc:
+        parser.error(str(exc))
     return 0
 
 

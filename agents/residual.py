@@ -28,7 +28,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from auv_follow_env.layout import OBS_DIM, obs_slice
+from auv_follow_env.layout import LAYOUTS, OBS_DIM, obs_slice
 from controllers import ALL_CONTROLLERS, make_controller
 
 __all__ = ["ResidualWrapper", "ResidualPolicy", "DelayedTargetHistory", "residual_obs_dim", "make_residual_wrapper"]
@@ -44,9 +44,10 @@ MAX_HISTORY_LEN = 100  # bound of history_len (features: 3 per lag)
 MAX_HISTORY_STEPS = 10_000  # bound of the memory history_len * history_stride (500 s at dt = 0.05 s)
 
 
-def residual_obs_dim(include_base_action: bool = True, history_len: int = DEFAULT_HISTORY_LEN) -> int:
-    """Width of the wrapped observation."""
-    return OBS_DIM + (3 if include_base_action else 0) + 3 * history_len
+def residual_obs_dim(include_base_action: bool = True, history_len: int = DEFAULT_HISTORY_LEN,
+                     obs_dim: int = OBS_DIM) -> int:
+    """Width of the wrapped observation (``obs_dim``: the env's, 16 for v0, 20 for v1)."""
+    return obs_dim + (3 if include_base_action else 0) + 3 * history_len
 
 
 def _check(controller: str, scale: float, history_len: int, history_stride: int) -> None:
@@ -126,9 +127,9 @@ class ResidualWrapper(gym.Wrapper):
                  history_stride: int = DEFAULT_HISTORY_STRIDE) -> None:
         super().__init__(env)
         _check(controller, scale, history_len, history_stride)
-        if env.observation_space.shape != (OBS_DIM,):
-            raise ValueError(f"env observation shape {env.observation_space.shape} is not the AUVFollow "
-                             f"layout ({OBS_DIM},): apply ResidualWrapper to an AUVFollow env")
+        if len(env.observation_space.shape) != 1 or env.observation_space.shape[0] not in LAYOUTS:
+            raise ValueError(f"env observation shape {env.observation_space.shape} is not an AUVFollow "
+                             f"layout (width {sorted(LAYOUTS)}): apply ResidualWrapper to an AUVFollow env")
         spec = env.unwrapped.task_spec
         self.controller_name = controller
         self.base = make_controller(controller, spec)
@@ -139,7 +140,7 @@ class ResidualWrapper(gym.Wrapper):
         self._history = DelayedTargetHistory(self.history_len, self.history_stride, spec.dt)
         self._k = 0
         self._base_action = np.zeros(3, dtype=np.float32)
-        dim = residual_obs_dim(self.include_base_action, self.history_len)
+        dim = residual_obs_dim(self.include_base_action, self.history_len, env.observation_space.shape[0])
         self.observation_space = spaces.Box(-np.inf, np.inf, (dim,), np.float32)
         self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
 
@@ -227,8 +228,9 @@ class ResidualPolicy:
         single = obs.ndim == 1
         if single:
             obs = obs[None, :]
-        if obs.ndim != 2 or obs.shape[1] != OBS_DIM:
-            raise ValueError(f"observation has shape {np.shape(observation)}: expected ({OBS_DIM},) or (N, {OBS_DIM})")
+        if obs.ndim != 2 or obs.shape[1] not in LAYOUTS:
+            raise ValueError(f"observation has shape {np.shape(observation)}: expected (W,) or (N, W) with an "
+                             f"AUVFollow layout width W in {sorted(LAYOUTS)}")
         n = obs.shape[0]
         if self._n != n or episode_start is None:
             start = np.full(n, self._n != n)

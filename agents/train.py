@@ -59,7 +59,9 @@ __all__ = ["ALGOS", "MODES", "TrainConfig", "train", "load_hyperparams", "check_
            "Agent", "versions", "evaluate_agent", "HYPERPARAMS_DIR", "ConfigError", "TrainingInterrupted",
            "MAX_N_ENVS"]
 
-ALGOS: tuple[str, ...] = ("ppo", "sac", "td3")
+ALGOS: tuple[str, ...] = ("ppo", "sac", "td3", "recurrentppo")
+#: algorithms whose policy carries a recurrent state (sb3-contrib's RecurrentPPO, an LSTM policy)
+RECURRENT_ALGOS: tuple[str, ...] = ("recurrentppo",)
 MODES: tuple[str, ...] = ("residual", "scratch")
 VEC_KINDS = ("dummy", "native")
 HYPERPARAMS_DIR = Path(__file__).with_name("hyperparams")
@@ -94,6 +96,10 @@ def _algo_class(algo: str):
     from stable_baselines3 import PPO, SAC, TD3
 
     classes = {"ppo": PPO, "sac": SAC, "td3": TD3}
+    if algo in RECURRENT_ALGOS:
+        from sb3_contrib import RecurrentPPO
+
+        classes["recurrentppo"] = RecurrentPPO
     if algo not in classes:
         raise ValueError(f"algo={algo!r} is unknown: valid algorithms are {list(ALGOS)}")
     return classes[algo]
@@ -102,9 +108,18 @@ def _algo_class(algo: str):
 def check_env_id(env_id: str, *, allow_any: bool = False) -> None:
     """Raise ``ValueError`` unless ``env_id`` is a registered AUVFollow id (or any registered
     id when ``allow_any``)."""
-    if env_id in auv_follow_env.ENV_IDS or (allow_any and env_id in gym.registry):
+    valid = list(auv_follow_env.ENV_IDS) + list(getattr(auv_follow_env, "ENV_IDS_V1", ()))
+    if env_id in valid or (allow_any and env_id in gym.registry):
         return
-    raise ValueError(f"env_id={env_id!r} is unknown: valid ids are {list(auv_follow_env.ENV_IDS)}")
+    raise ValueError(f"env_id={env_id!r} is unknown: valid ids are {valid}")
+
+
+def check_tier_training_seeds(env_id: str, seeds: list[int]) -> None:
+    """On a v1 tier, refuse training/evaluation-callback seeds that could be test seeds
+    (``auv_follow_env.check_training_seeds``: every published test seed is above the limit)."""
+    check = getattr(auv_follow_env, "check_training_seeds", None)
+    if check is not None and env_id in getattr(auv_follow_env, "ENV_IDS_V1", ()):
+        check(seeds, name=f"training seeds of {env_id}")
 
 
 def _eval_zoo(value: Any) -> Any:
@@ -358,6 +373,11 @@ class TrainConfig:
         out = Path(self.out_dir)
         if out.exists() and not out.is_dir():
             raise ConfigError("out_dir", f"out_dir={self.out_dir!r} is invalid: it exists and is not a directory")
+        try:
+            check_tier_training_seeds(self.env_id, [self.seed + i for i in range(self.n_envs or 16)]
+                                      + [self.eval_seed])
+        except ValueError as exc:
+            raise ConfigError("seed", str(exc)) from None
         if self.resume_from is not None and not Path(self.resume_from).is_file():
             raise ConfigError("resume_from", f"resume_from={self.resume_from!r}: no such model file")
         if self.hyperparams_file is not None and not Path(self.hyperparams_file).is_file():
@@ -872,6 +892,15 @@ class Agent:
     def normalize(self, obs: np.ndarray) -> np.ndarray:
         return obs if self.stats is None else self.stats.normalize(obs)
 
+    @property
+    def recurrent(self) -> bool:
+        """True for an LSTM policy (RecurrentPPO): :meth:`predict` then keeps its state."""
+        return self.config["run"]["algo"] in RECURRENT_ALGOS
+
+    def reset(self) -> None:
+        """Forget the recurrent state: the next call starts every env afresh."""
+        self._lstm, self._lstm_n = None, None
+
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool = True) -> tuple[np.ndarray, Any]:
         obs = np.asarray(observation, dtype=np.float32)
@@ -884,8 +913,23 @@ class Agent:
                         "agent.env_wrapper(env)")
             raise ValueError(f"observation has shape {obs.shape}: this agent expects ({width},) or (N, {width})"
                              + hint)
-        action, _ = self.model.predict(self.normalize(obs), deterministic=deterministic)
-        return action, state
+        obs = self.normalize(obs)
+        if not self.recurrent:
+            action, _ = self.model.predict(obs, deterministic=deterministic)
+            return action, state
+        # a recurrent policy keeps its LSTM state itself (callers such as evaluate_batched pass
+        # state=None on every step), restarted per env where episode_start is set
+        n = 1 if obs.ndim == 1 else obs.shape[0]
+        if getattr(self, "_lstm_n", None) != n:
+            self._lstm, self._lstm_n = None, n
+            start = np.ones(n, dtype=bool)
+        elif episode_start is None:
+            start = np.zeros(n, dtype=bool)
+        else:
+            start = np.asarray(episode_start, dtype=bool).reshape(n)
+        lstm = state if state is not None else getattr(self, "_lstm", None)
+        action, self._lstm = self.model.predict(obs, state=lstm, episode_start=start, deterministic=deterministic)
+        return action, (self._lstm if state is not None else state)
 
 
 def load_agent(path: str | Path, name: str | None = None) -> Agent:

@@ -40,8 +40,9 @@ class NativeVecEnv(VecEnv):
 
     def __init__(self, env_id: str = "AUVFollow-S4-v0", num_envs: int = 8, seed: int | None = 0,
                  env_kwargs: dict[str, Any] | None = None) -> None:
-        if env_id not in auv_follow_env.ENV_IDS:
-            raise ValueError(f"env_id={env_id!r} is unknown: valid ids are {list(auv_follow_env.ENV_IDS)}")
+        valid = list(auv_follow_env.ENV_IDS) + list(getattr(auv_follow_env, "ENV_IDS_V1", ()))
+        if env_id not in valid:
+            raise ValueError(f"env_id={env_id!r} is unknown: valid ids are {valid}")
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs={num_envs!r} is invalid: must be an integer >= 1")
         self.venv = gym.make_vec(env_id, num_envs=int(num_envs), vectorization_mode="vector_entry_point",

@@ -1,0 +1,281 @@
+"""Sweeps on Ray Tune: algorithm x hyperparameters x training seed x tier, each trial calling
+the project's :func:`agents.train.train`.
+
+A trial trains in ``chunks`` pieces (``train(..., resume_from=<previous model>)`` continues the
+step count and the VecNormalize statistics); after each piece it evaluates the agent on the
+tier's **validation seeds** (:data:`VALIDATION_SEEDS`, disjoint from every published test
+seed: asserted) and reports the metrics to Tune together with a checkpoint (the run
+directory: ``model.zip``, ``vecnormalize.pkl``, ``config.yaml``). A restored trial continues
+from its last checkpoint, so a sweep interrupted by a crash or Ctrl-C resumes where it stopped
+when run again with the same ``name`` and ``storage`` (``Tuner.restore``, unfinished and
+errored trials resumed).
+
+Ray runs locally by default (``ray.init`` on this machine's CPUs); ``address`` (or the
+``RAY_ADDRESS`` environment variable) connects to an existing cluster instead, unchanged -
+every node then needs this package installed (``pip install -e .[sweep]``) and a shared
+``storage`` path (or a URI Ray can write, e.g. a bucket).
+
+Search-space file (YAML)::
+
+    grid:                 # every combination (tune.grid_search)
+      algo: [ppo, recurrentppo]
+      mode: [scratch]
+      tier: [Medium]
+      seed: [0, 1, 2]
+      hp.learning_rate: [3.0e-4, 1.0e-4]
+    search:               # sampled num_samples times per grid point
+      hp.gamma: {uniform: [0.95, 0.99]}
+    timesteps: 200000     # env steps per trial
+    chunks: 4             # reports / checkpoints per trial
+    n_envs: 8
+
+The best trials feed the benchmark: each result row has ``run_dir`` (the trial's final run),
+e.g. ``auv-follow benchmark --policies best=<run_dir>``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import yaml
+
+__all__ = ["SweepConfig", "sweep", "run_trial", "VALIDATION_SEEDS", "DEFAULT_GRID", "param_space"]
+
+#: validation seeds of every tier (our choice: 900-919; test seeds are published separately
+#: and checked to be disjoint, training envs start at seed + i for small seeds)
+VALIDATION_SEEDS: tuple[int, ...] = tuple(range(900, 920))
+#: the default grid (small: one algorithm, two seeds)
+DEFAULT_GRID: dict[str, list[Any]] = {"algo": ["ppo"], "mode": ["scratch"], "tier": ["S4"], "seed": [0, 1]}
+_TRIAL_KEYS = ("algo", "mode", "tier", "seed", "controller", "scale")
+_SAMPLERS = ("uniform", "loguniform", "choice", "randint")
+
+
+@dataclass
+class SweepConfig:
+    """One sweep (everything Tune needs; written to ``<storage>/<name>/sweep.yaml``)."""
+
+    grid: dict[str, list[Any]] = field(default_factory=lambda: dict(DEFAULT_GRID))  #: grid_search axes
+    search: dict[str, dict[str, list[Any]]] = field(default_factory=dict)  #: sampled axes
+    timesteps: int = 20_000  #: env steps per trial
+    chunks: int = 2  #: reports (and checkpoints) per trial
+    n_envs: int = 4  #: training envs per trial
+    num_samples: int = 1  #: samples of the search space per grid point
+    validation_seeds: list[int] = field(default_factory=lambda: list(VALIDATION_SEEDS))  #: evaluation seeds
+    name: str = "auv-follow-sweep"  #: experiment name (the resume key)
+    storage: str = "results/sweeps"  #: parent directory of the experiment
+    address: str | None = None  #: Ray cluster address (None: RAY_ADDRESS, else local Ray)
+    cpus_per_trial: float = 1.0  #: Tune resources per trial
+    max_failures: int = 0  #: automatic retries of a failed trial (from its last checkpoint)
+    resume: bool = True  #: restore the experiment if it exists
+    verbose: int = 1  #: Tune verbosity (1: the progress table)
+    fail_once_marker: str | None = None  #: testing: a trial fails once after its first report while this file exists
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first invalid field."""
+        from agents.benchmark import resolve_tier
+        from agents.train import ALGOS, MODES
+
+        for k, v in self.grid.items():
+            if not isinstance(v, list) or not v:
+                raise ValueError(f"grid[{k!r}]={v!r} is invalid: must be a non-empty list")
+            if not (k in _TRIAL_KEYS or k.startswith("hp.")):
+                raise ValueError(f"grid key {k!r} is unknown: valid keys are {list(_TRIAL_KEYS)} and hp.<name>")
+        for a in self.grid.get("algo", ["ppo"]):
+            if a not in ALGOS:
+                raise ValueError(f"grid['algo'] has {a!r}: valid algorithms are {list(ALGOS)}")
+        for m in self.grid.get("mode", ["scratch"]):
+            if m not in MODES:
+                raise ValueError(f"grid['mode'] has {m!r}: valid modes are {list(MODES)}")
+        for t in self.grid.get("tier", ["S4"]):
+            resolve_tier(t)
+            _check_validation_seeds(self.validation_seeds, t)
+        for k, spec in self.search.items():
+            if not (isinstance(spec, dict) and len(spec) == 1 and next(iter(spec)) in _SAMPLERS):
+                raise ValueError(f"search[{k!r}]={spec!r} is invalid: must be one of {{sampler: args}} with sampler "
+                                 f"in {list(_SAMPLERS)}")
+        for name in ("timesteps", "chunks", "n_envs", "num_samples"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name}={v!r} is invalid: must be an integer >= 1")
+        if self.timesteps < self.chunks:
+            raise ValueError(f"timesteps={self.timesteps} is invalid: must be >= chunks={self.chunks}")
+        if not self.cpus_per_trial > 0:
+            raise ValueError(f"cpus_per_trial={self.cpus_per_trial!r} is invalid: must be > 0")
+
+    @classmethod
+    def from_file(cls, path: str | Path, **overrides: Any) -> SweepConfig:
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"sweep config {p} does not exist")
+        data = yaml.safe_load(p.read_text()) or {}
+        unknown = sorted(set(data) - {f for f in cls.__dataclass_fields__})
+        if unknown:
+            raise ValueError(f"sweep config {p} has unknown keys {unknown}: valid keys are "
+                             f"{sorted(cls.__dataclass_fields__)}")
+        data.update({k: v for k, v in overrides.items() if v is not None})
+        return cls(**data)
+
+    @classmethod
+    def from_args(cls, args: Any) -> SweepConfig:
+        """From the ``auv-follow sweep`` arguments."""
+        over = {"name": args.name, "storage": args.storage, "address": args.address, "timesteps": args.timesteps,
+                "chunks": args.chunks, "num_samples": args.num_samples, "cpus_per_trial": args.cpus_per_trial,
+                "resume": args.resume}
+        if args.config:
+            return cls.from_file(args.config, **over)
+        return cls(**{k: v for k, v in over.items() if v is not None})
+
+
+def _check_validation_seeds(seeds: list[int], tier: str) -> None:
+    from agents.benchmark import tier_test_seeds
+
+    clash = sorted(set(int(s) for s in seeds) & set(tier_test_seeds(tier)))
+    if clash:
+        raise ValueError(f"validation_seeds={clash[:5]}... overlap the published test seeds of tier {tier!r}: "
+                         f"sweeps must never select on test seeds")
+
+
+def param_space(cfg: SweepConfig) -> dict[str, Any]:
+    """Tune's ``param_space``: grid axes as ``tune.grid_search``, search axes as samplers,
+    and the fixed settings."""
+    from ray import tune
+
+    space: dict[str, Any] = {k: tune.grid_search(list(v)) for k, v in cfg.grid.items()}
+    for k, spec in cfg.search.items():
+        (kind, arg), = spec.items()
+        space[k] = tune.choice(arg) if kind == "choice" else getattr(tune, kind)(*arg)
+    space["_fixed"] = {"timesteps": cfg.timesteps, "chunks": cfg.chunks, "n_envs": cfg.n_envs,
+                       "validation_seeds": list(cfg.validation_seeds), "fail_once_marker": cfg.fail_once_marker}
+    return space
+
+
+def _validation_metrics(run: Path, tier: str, seeds: list[int]) -> dict[str, float]:
+    from agents.benchmark import PolicySpec, evaluate_tier, iqm, scores
+
+    spec = PolicySpec(label="trial", kind="learned", runs=(str(run),))
+    df = evaluate_tier([spec], tier, seeds, progress=False)
+    sc = scores(df, "true_steady_mean").to_numpy()
+    return {"val_true_steady_mean_iqm": float(iqm(sc)), "val_true_steady_mean_mean": float(np.mean(sc)),
+            "val_true_full_mean_iqm": float(iqm(scores(df, "true_full_mean").to_numpy())),
+            "val_termination_rate": float(df["terminated"].mean()), "val_return_mean": float(df["return"].mean())}
+
+
+def _claim(marker: Path) -> bool:
+    """Delete ``marker``; True for the one caller that did (trials race for it)."""
+    try:
+        marker.unlink()
+    except FileNotFoundError:
+        return False
+    return True
+
+
+def run_trial(config: dict[str, Any]) -> None:
+    """Tune's function trainable: train in chunks with :func:`agents.train.train`, evaluate on
+    the validation seeds, report with a checkpoint; resumes from Tune's checkpoint."""
+    import tempfile
+
+    from ray import tune
+
+    from agents.benchmark import resolve_tier
+    from agents.train import TrainConfig, train
+
+    fixed = config["_fixed"]
+    tier = config.get("tier", "S4")
+    _, env_id = resolve_tier(tier)
+    hp = {k[3:]: v for k, v in config.items() if k.startswith("hp.")}
+    chunks, total = int(fixed["chunks"]), int(fixed["timesteps"])
+    work = Path(tempfile.mkdtemp(prefix="auv-sweep-"))
+    start_chunk, model, resumed_from = 0, None, -1
+    ckpt = tune.get_checkpoint()
+    if ckpt is not None:
+        with ckpt.as_directory() as d:
+            state = json.loads((Path(d) / "trial_state.json").read_text())
+            shutil.copytree(d, work / "restored")
+        start_chunk, model, resumed_from = state["chunk"] + 1, work / "restored" / "model.zip", state["chunk"]
+    extra = {k: config[k] for k in ("controller", "scale") if k in config}
+    for i in range(start_chunk, chunks):
+        cfg = TrainConfig(algo=config.get("algo", "ppo"), env_id=env_id, mode=config.get("mode", "scratch"),
+                          seed=int(config.get("seed", 0)), n_envs=int(fixed["n_envs"]),
+                          total_timesteps=max(1, round(total * (i + 1) / chunks)), hyperparams=hp,
+                          resume_from=str(model) if model is not None else None, out_dir=str(work),
+                          run_name=f"chunk{i}", checkpoint_freq=0, eval_freq=0, progress_bar=False,
+                          tensorboard=False, **extra)
+        run = train(cfg)
+        model = run / "model.zip"
+        with open(run / "config.yaml") as f:
+            steps = int(yaml.safe_load(f)["result"]["num_timesteps"])
+        metrics = _validation_metrics(run, tier, list(fixed["validation_seeds"]))
+        (run / "trial_state.json").write_text(json.dumps({"chunk": i, "timesteps": steps}))
+        metrics.update({"timesteps": steps, "chunk": i, "resumed_from_chunk": resumed_from,
+                        "env_id": env_id, "run_dir": str(run)})
+        tune.report(metrics, checkpoint=tune.Checkpoint.from_directory(str(run)))
+        if fixed.get("fail_once_marker") and i == 0 and _claim(Path(fixed["fail_once_marker"])):
+            raise RuntimeError("injected failure (fail_once_marker): run the sweep again to resume it")
+    shutil.rmtree(work, ignore_errors=True)  # everything kept is in Tune's checkpoints
+
+
+def _init_ray(address: str | None) -> None:
+    import ray
+
+    if ray.is_initialized():
+        return
+    address = address or os.environ.get("RAY_ADDRESS")
+    if address:
+        ray.init(address=address, log_to_driver=False)
+    else:
+        ray.init(num_cpus=os.cpu_count() or 1, include_dashboard=False, log_to_driver=False)
+
+
+def sweep(cfg: SweepConfig) -> pd.DataFrame:
+    """Run (or resume) the sweep and return one row per trial, best first (lowest validation
+    IQM steady-state error); also written to ``<storage>/<name>/trials.csv``.
+
+    Raises:
+        ValueError: invalid configuration (names the field).
+    """
+    cfg.validate()
+    from ray import tune
+
+    storage = cfg.storage if "://" in cfg.storage else str(Path(cfg.storage).resolve())
+    exp = Path(storage) / cfg.name
+    _init_ray(cfg.address)
+    trainable = tune.with_resources(run_trial, {"cpu": cfg.cpus_per_trial})
+    if cfg.resume and tune.Tuner.can_restore(str(exp)):
+        tuner = tune.Tuner.restore(str(exp), trainable, resume_unfinished=True, resume_errored=True)
+    else:
+        run_config = tune.RunConfig(
+            name=cfg.name, storage_path=storage, verbose=cfg.verbose,
+            checkpoint_config=tune.CheckpointConfig(num_to_keep=2),
+            failure_config=tune.FailureConfig(max_failures=cfg.max_failures))
+        tuner = tune.Tuner(trainable, param_space=param_space(cfg),
+                           tune_config=tune.TuneConfig(num_samples=cfg.num_samples),
+                           run_config=run_config)
+    results = tuner.fit()
+    df = results.get_dataframe()
+    # the trial's last checkpoint is a complete run directory (model.zip, vecnormalize.pkl,
+    # config.yaml): what `auv-follow benchmark --policies` takes
+    ckpt_dirs = {r.metrics.get("trial_id"): (r.checkpoint.path if r.checkpoint is not None else None)
+                 for r in results}
+    df["run_dir"] = df["trial_id"].map(ckpt_dirs)
+    keep = [c for c in df.columns if c.startswith(("config/", "val_")) and not c.startswith("config/_fixed")]
+    keep += [c for c in ("timesteps", "chunk", "resumed_from_chunk", "training_iteration", "run_dir", "trial_id",
+                         "env_id") if c in df]
+    df = df[keep].rename(columns=lambda c: c.replace("config/", ""))
+    if "val_true_steady_mean_iqm" in df:
+        df = df.sort_values("val_true_steady_mean_iqm").reset_index(drop=True)
+    if "://" not in storage:
+        exp.mkdir(parents=True, exist_ok=True)
+        df.to_csv(exp / "trials.csv", index=False)
+        (exp / "sweep.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(asdict(cfg), default=str)),
+                                                       sort_keys=False))
+    errors = [r.error for r in results if r.error is not None]
+    if errors:
+        print(f"{len(errors)} trial(s) errored; run the same command again to resume them: {errors[0]}")
+    return df
