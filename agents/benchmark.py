@@ -685,6 +685,7 @@ def plot_leaderboard(board: pd.DataFrame, path: str | Path, metric: str = "true_
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401  (matplotlib.ticker below)
 
     tiers = list(dict.fromkeys(board["tier"]))
     n_pol = board.groupby("tier").size().max()
@@ -698,6 +699,11 @@ def plot_leaderboard(board: pd.DataFrame, path: str | Path, metric: str = "true_
         ax.barh(y, est, xerr=err, color=colors, capsize=3)
         ax.set_yticks(y, sub["policy"], fontsize=8)
         ax.set_xscale("log")
+        # labelled ticks at 1, 2, 5 x 10^k; no minor labels (they overlap on short ranges)
+        ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.tick_params(axis="x", labelsize=8)
         ax.set_title(tier)
         ax.set_xlabel(f"IQM {metric.replace('true_', '')} [m]")
     fig.suptitle("true-reference error, IQM with 95 % CI (orange: classical, blue: learned)", fontsize=9)
