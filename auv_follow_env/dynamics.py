@@ -4,7 +4,7 @@ Every kernel here works on a leading batch axis ``i`` and is compiled with numba
 disk, so only the first run in a fresh checkout pays the compile). The single env calls it
 with a batch of one; the vector env with a batch of N. There is no second copy.
 
-Equations (Zhang et al. 2026, signs restored per NOTES.md):
+Equations (Zhang et al. 2026, signs restored per docs/paper_notes.md):
 
 * kinematics (3): x' = u cos psi - v sin psi, y' = u sin psi + v cos psi, psi' = r;
 * current (5): [u_c, v_c] = R(psi)^T v_c^I;  (9): u_r = u - u_c, v_r = v - v_c;
@@ -75,7 +75,7 @@ P_NS0, P_NSK, P_NPSI, P_NVEL, P_NYAW = 59, 60, 61, 62, 63  # fix noise: position
 NP = 64
 #: latency models (P_LAT_KIND)
 LAT_CONSTANT, LAT_UNIFORM, LAT_GAUSS_MARKOV = 0, 1, 2
-#: disturbance tone frequencies [rad/s] (ours, NOTES.md) and weights (sum to 1)
+#: disturbance tone frequencies [rad/s] (ours, docs/paper_notes.md) and weights (sum to 1)
 DIST_OMEGA = (0.35, 0.9)
 DIST_WEIGHT = (0.6, 0.4)
 

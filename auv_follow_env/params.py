@@ -6,7 +6,7 @@ written once, here; variants are made with :func:`dataclasses.replace` or throug
 environment's keyword overrides, which build a validated :class:`EnvConfig`.
 
 Sources: Zhang et al., J. Mar. Sci. Eng. 2026, 14(11), 963, Tables 2-3 and eq. (63);
-``shared/paper/NOTES.md`` for the restored signs and suggested values.
+``docs/paper_notes.md`` for the restored signs and suggested values.
 """
 
 from __future__ import annotations
@@ -85,7 +85,7 @@ class VehicleParams:
     """Planar 3-DOF vehicle, eqs. (6)-(8). The paper gives no values; these are ours.
 
     A small ROV with added mass included; linear damping stands in for quadratic drag
-    near 0.5 m/s (NOTES.md, suggested values).
+    near 0.5 m/s (docs/paper_notes.md, suggested values).
     """
 
     m: float = 25.0  #: equivalent mass incl. added mass [kg] (our choice)
@@ -113,7 +113,7 @@ class TargetParams:
     v_t = 0, r_t = a_r sin(2 pi t / P_r + phi_r). Phases are drawn from the env's seed.
 
     ``speed`` is Table 2's mean speed; the manoeuvre amplitudes and periods are ours
-    (NOTES.md, suggested values), rising from S1 to S4.
+    (docs/paper_notes.md, suggested values), rising from S1 to S4.
     """
 
     speed: float  #: mean surge speed v_bar [m/s] (Table 2)
@@ -134,7 +134,7 @@ class DisturbanceLevel:
     """Table 3: current ranges (inertial x/y components of v_c^I) and peaks of the lumped
     disturbances (d_u, d_v, d_r).
 
-    The peaks are read per unit mass (our reading; NOTES.md): the plant receives the
+    The peaks are read per unit mass (our reading; docs/paper_notes.md): the plant receives the
     forces m d_u, m d_v [N] and the moment I_z d_r [N m]. Each disturbance is two tones
     (0.35 and 0.9 rad/s, weights 0.6 and 0.4, random phases), so |d| <= peak. Each current
     component is a sinusoid spanning exactly [min, max], period drawn in [40, 80] s.
@@ -155,7 +155,7 @@ class DisturbanceLevel:
                  "peaks", self.peaks, "three finite numbers >= 0")
 
 
-# Table 3, signs restored as in NOTES.md (sway ranges were printed out of order).
+# Table 3, signs restored as in docs/paper_notes.md (sway ranges were printed out of order).
 DISTURBANCE_LEVELS: Mapping[str, DisturbanceLevel] = MappingProxyType({
     "L0": DisturbanceLevel(name="L0", current_x=(0.0, 0.0), current_y=(0.0, 0.0),
                            peaks=(0.0, 0.0, 0.0), description="no disturbance"),
@@ -174,7 +174,7 @@ class Scenario:
     target: TargetParams
     delay_s: float  #: target-state delay tau [s] (Table 2)
     disturbance: str  #: default disturbance level (Table 2)
-    mismatch: float  #: true damping = nominal * (1 + mismatch) [-] (our choice, NOTES.md)
+    mismatch: float  #: true damping = nominal * (1 + mismatch) [-] (our choice, docs/paper_notes.md)
     description: str = ""
 
 
@@ -242,7 +242,7 @@ class EnvConfig:
     physics_substeps: int = 2
     """RK4 substeps per control step (ours: 0.025 s; measured over a 60 s S4 run, the pose
     differs from a 40-substep solution by < 1e-7 m, so the physics is converged)."""
-    episode_s: float = 60.0  #: episode length [s] (ours, NOTES.md)
+    episode_s: float = 60.0  #: episode length [s] (ours, docs/paper_notes.md)
     steady_start_s: float = 10.0  #: start of the steady-state window [s] (paper, Sec. 4.3)
     p_d: tuple[float, float] = OFFSET_P_D  #: reference offset in the target body frame [m]
     psi_d: float = 0.0  #: heading offset [rad] (ours: the paper gives none)

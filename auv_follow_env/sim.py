@@ -97,7 +97,7 @@ def sample_params(config: EnvConfig, rng: np.random.Generator) -> np.ndarray:
         a, b = rng_pair
         return (0.5 * (a + b), 0.5 * (b - a), TWO_PI / (lo + (hi - lo) * up), TWO_PI * uph)
 
-    scale = (veh.m, veh.m, veh.I_z)  # Table 3 peaks read per unit mass (NOTES.md)
+    scale = (veh.m, veh.m, veh.I_z)  # Table 3 peaks read per unit mass (docs/paper_notes.md)
     w1, w2 = dyn.DIST_WEIGHT
     dist = tuple((w1 * pk * sc, TWO_PI * u[6 + 2 * c], w2 * pk * sc, TWO_PI * u[7 + 2 * c])
                  for c, (pk, sc) in enumerate(zip(lvl.peaks, scale, strict=False)))

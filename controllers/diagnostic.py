@@ -1,6 +1,6 @@
 """DIAGNOSTIC ONLY - not the paper's controller and not a valid follower.
 
-NOTES.md ("What the feasibility study found", item 3): feeding the feedforward (26) and the
+docs/paper_notes.md ("What the reproduction finds", item 4): feeding the feedforward (26) and the
 yaw-rate command (29) with the *present*, undelayed target velocity instead of the delayed
 one (13) may explain the paper's published steady-state numbers. A real follower does not
 have that velocity, so this variant needs information the environment only gives in

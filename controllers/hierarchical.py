@@ -31,7 +31,7 @@ __all__ = ["Gains", "HierarchicalController", "predict_target", "reference_point
 
 @dataclass(frozen=True, kw_only=True)
 class Gains:
-    """Gains of the hierarchical law: one set for the whole study (NOTES.md suggested values;
+    """Gains of the hierarchical law: one set for the whole study (docs/paper_notes.md suggested values;
     the paper gives none). Shared by PROPOSED, ROBUST_ONLY and PRED_ONLY."""
 
     K_p: float = 1.0  #: outer-loop position gain, eq. (25) [1/s]

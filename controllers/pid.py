@@ -1,7 +1,7 @@
 """The paper's PID baseline (Sec. 4, Table 1): a conventional PID on the reference-tracking
 error, with no prediction, no model compensation and no robust terms.
 
-The paper gives no structure or gains; ours (NOTES.md suggested values): the position
+The paper gives no structure or gains; ours (docs/paper_notes.md suggested values): the position
 error to the *delayed* reference e_I = p_ref - p, in the inertial frame, drives a PID per
 axis whose output force is rotated into the body axes; heading has its own PID on
 wrapToPi(psi_ref - psi). Derivatives are filtered (time constant 0.05 s); the integral is

@@ -1,7 +1,7 @@
 """Physics of the numba kernels against hand-worked (closed-form) values.
 
 Every expected value below is derived by hand from eqs. (3)-(10) of the paper (signs as
-restored in shared/paper/NOTES.md), never printed by the code under test:
+restored in docs/paper_notes.md), never printed by the code under test:
 
 * linear surge/sway/yaw damping from rest under a constant force: first-order lag
   u(t) = F / X (1 - exp(-X t / m)), position = its integral;

@@ -25,7 +25,7 @@ def test_paper_tables_loaded_in_long_form():
 
 
 def test_paper_inconsistency_is_found():
-    # NOTES.md: PROPOSED in S1 breaks RMSE^2 <= max * mean (0.154^2 = 0.0237 > 1.07 * 0.019 = 0.0203)
+    # docs/paper_notes.md: PROPOSED in S1 breaks RMSE^2 <= max * mean (0.154^2 = 0.0237 > 1.07 * 0.019 = 0.0203)
     bad = paper.paper_consistency()
     row = bad[(bad.scenario == "S1") & (bad.window == "full") & (bad.controller == "PROPOSED")]
     assert len(row) == 1
