@@ -35,6 +35,9 @@ from agents.train import ALGOS, MAX_N_ENVS, MODES, ConfigError, TrainConfig, Tra
 
 __all__ = ["main", "build_parser"]
 
+#: every registered id: the paper's v0 scenarios and the v1 acoustic-link tiers
+ENV_CHOICES: tuple[str, ...] = auv_follow_env.ENV_IDS + auv_follow_env.ENV_IDS_V1
+
 #: TrainConfig field -> command-line flag (for errors found after parsing)
 FLAGS: dict[str, str] = {
     "algo": "--algo", "env_id": "--env", "env_kwargs": "--env-kwarg", "mode": "--mode", "controller": "--controller",
@@ -134,7 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "controller; everything is checked before the run directory is created.",
                        epilog=_TRUST)
     t.add_argument("--algo", choices=ALGOS, default="ppo", help="algorithm")
-    t.add_argument("--env", dest="env_id", choices=auv_follow_env.ENV_IDS, default="AUVFollow-S4-v0", help="env id")
+    t.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default="AUVFollow-S4-v0", help="env id")
     t.add_argument("--env-kwarg", dest="env_kwargs", type=_key_value, action="append", default=[],
                    metavar="KEY=VALUE", help="scenario override for gym.make (repeatable), e.g. disturbance=L1")
     t.add_argument("--mode", choices=MODES, default="residual", help="residual on a controller, or from scratch")
@@ -181,7 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("evaluate", help="evaluate a saved agent on test seeds", formatter_class=_Formatter,
                        description="Evaluate a saved agent on test seeds (one row per episode).", epilog=_TRUST)
     e.add_argument("model", help="run directory or model .zip")
-    e.add_argument("--env", dest="env_id", choices=auv_follow_env.ENV_IDS, default=None,
+    e.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default=None,
                    help="env id (None: the one the agent was trained on)")
     e.add_argument("--seeds", type=_seeds, default=list(range(1000, 1010)), help="test seeds, e.g. 1000-1009 or 1,2")
     e.add_argument("--out", default=None, help="CSV file for the per-episode metrics")
@@ -192,7 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Agents and the scripted controllers on the same env and seeds: "
                                    "<name>.csv, <name>_summary.csv, <name>.md and <name>.png in --out.")
     c.add_argument("models", nargs="*", help="run directories or model .zip files")
-    c.add_argument("--env", dest="env_id", choices=auv_follow_env.ENV_IDS, default="AUVFollow-S4-v0", help="env id")
+    c.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default="AUVFollow-S4-v0", help="env id")
     c.add_argument("--env-kwarg", dest="env_kwargs", type=_key_value, action="append", default=[],
                    metavar="KEY=VALUE", help="scenario override for every policy (repeatable)")
     c.add_argument("--seeds", type=_seeds, default=list(range(1000, 1010)), help="test seeds, e.g. 1000-1009 or 1,2")

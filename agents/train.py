@@ -833,7 +833,7 @@ def _final_score(cfg: TrainConfig, model: Any, venv: Any, resolved: dict) -> dic
     from stable_baselines3.common.vec_env import VecNormalize
 
     seeds = list(range(cfg.eval_seed, cfg.eval_seed + cfg.eval_episodes))
-    if cfg.env_id not in auv_follow_env.ENV_IDS:
+    if cfg.env_id not in auv_follow_env.ENV_IDS + auv_follow_env.ENV_IDS_V1:
         print(f"final score: not computed ({cfg.env_id} is not an AUVFollow env)")
         return None
     stats = stats_from_vecnormalize(venv) if isinstance(venv, VecNormalize) else None
