@@ -11,7 +11,7 @@ import numpy as np
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1
 from auv_follow_env.params import TaskSpec
 
-__all__ = ["ScriptedPolicy", "FilteredDerivative", "wrap_to_pi", "sat"]
+__all__ = ["ScriptedPolicy", "as_batch", "as_mask", "FilteredDerivative", "wrap_to_pi", "sat"]
 
 
 def wrap_to_pi(a: np.ndarray) -> np.ndarray:
@@ -54,6 +54,32 @@ class FilteredDerivative:
         return self.d
 
 
+def as_batch(observation: Any, widths: tuple[int, ...]) -> tuple[np.ndarray, bool]:
+    """(observations as a float64 (N, W) array, whether one (W,) observation was given).
+
+    Raises:
+        ValueError: not 1-D or 2-D, or a width W not in ``widths``.
+    """
+    obs = np.asarray(observation, dtype=np.float64)
+    single = obs.ndim == 1
+    if single:
+        obs = obs[None, :]
+    if obs.ndim != 2 or obs.shape[1] not in widths:
+        raise ValueError(f"observation has shape {np.shape(observation)}: expected (W,) or (N, W) "
+                         f"with W = {' or '.join(str(w) for w in widths)}")
+    return obs, single
+
+
+def as_mask(mask: Any, n: int, name: str) -> np.ndarray:
+    """A per-env bool mask of shape (n,) (all False for None), or a ValueError naming ``name``."""
+    if mask is None:
+        return np.zeros(n, dtype=bool)
+    m = np.asarray(mask, dtype=bool).reshape(-1)
+    if m.shape != (n,):
+        raise ValueError(f"{name} has shape {np.shape(mask)}: expected ({n},)")
+    return m
+
+
 class ScriptedPolicy:
     """Base of the scripted controllers: an SB3-style policy over observations.
 
@@ -86,24 +112,13 @@ class ScriptedPolicy:
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool = True) -> tuple[np.ndarray, Any]:
-        obs = np.asarray(observation, dtype=np.float64)
-        single = obs.ndim == 1
-        if single:
-            obs = obs[None, :]
-        if obs.ndim != 2 or obs.shape[1] not in self.obs_dims:
-            widths = " or ".join(str(w) for w in self.obs_dims)
-            raise ValueError(f"observation has shape {np.shape(observation)}: expected (W,) or (N, W) "
-                             f"with W = {widths}")
+        obs, single = as_batch(observation, self.obs_dims)
         n = obs.shape[0]
         if self._n != n:
             mask = np.ones(n, dtype=bool)
             self._n = n
-        elif episode_start is None:
-            mask = np.zeros(n, dtype=bool)
         else:
-            mask = np.asarray(episode_start, dtype=bool).reshape(-1)
-            if mask.shape != (n,):
-                raise ValueError(f"episode_start has shape {np.shape(episode_start)}: expected ({n},)")
+            mask = as_mask(episode_start, n, "episode_start")
         forces = self.forces(obs, mask)
         self.last_forces = forces
         actions = np.clip(forces / self._limits, -1.0, 1.0).astype(np.float32)

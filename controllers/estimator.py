@@ -63,6 +63,7 @@ import numpy as np
 
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1, decode
 from auv_follow_env.params import TaskSpec
+from controllers.base import as_batch, as_mask
 
 __all__ = ["EstimatorConfig", "TargetEstimate", "TargetEstimator", "MODELS", "propagate_mean"]
 
@@ -414,19 +415,9 @@ class TargetEstimator:
             rel_psi=np.where(valid, np.arctan2(np.sin(dpsi), np.cos(dpsi)), z), state=x, cov=P, age=T)
 
     def _checked(self, observation, reset_mask):
-        obs = np.asarray(observation, dtype=np.float64)
-        if obs.ndim == 1:
-            obs = obs[None]
-        if obs.ndim != 2 or obs.shape[1] not in (OBS_DIM, OBS_DIM_V1):
-            raise ValueError(f"observation has shape {np.shape(observation)}: expected (W,) or (N, W) with "
-                             f"W = {OBS_DIM} (v0) or {OBS_DIM_V1} (v1)")
+        obs, _ = as_batch(observation, (OBS_DIM, OBS_DIM_V1))
         n = obs.shape[0]
-        if reset_mask is None:
-            mask = np.zeros(n, dtype=bool)
-        else:
-            mask = np.asarray(reset_mask, dtype=bool).reshape(-1)
-            if mask.shape != (n,):
-                raise ValueError(f"reset_mask has shape {np.shape(reset_mask)}: expected ({n},)")
+        mask = as_mask(reset_mask, n, "reset_mask")
         if self._s is None or self._s.x.shape[0] != n:
             mask = np.ones(n, dtype=bool)
             self._s = self._fresh(n)
