@@ -32,7 +32,7 @@ import gymnasium as gym
 import numpy as np
 
 import auv_follow_env  # noqa: F401  (registers the ids)
-from experiments.outputs import output_path
+from experiments.outputs import output_path, write_report
 
 ENVS = ("AUVFollow-S4-v0", "AUVFollow-Hard-v1", "Pendulum-v1")
 ROOT = Path(__file__).resolve().parents[1]
@@ -159,11 +159,8 @@ def main(argv: list[str] | None = None) -> str:
                      f"{res['make_reset']:.3f} | {res['first_step']:.3f} | {res['second_step'] * 1e3:.3f} ms | "
                      f"{res['total']:.3f} | {res['process_wall']:.3f} |")
     table = "\n".join(lines) + "\n"
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(table)
     print()
-    print(table)
-    print(f"written to {args.out}")
+    write_report(args.out, table)
     return table
 
 

@@ -20,7 +20,7 @@ import numpy as np
 import auv_follow_env
 from controllers import make_controller
 from controllers.evaluation import evaluate_controllers
-from experiments.outputs import output_path
+from experiments.outputs import output_path, write_report
 
 
 def run_batched(n: int, chunk: int) -> tuple[float, float]:
@@ -104,10 +104,7 @@ def main(argv: list[str] | None = None) -> str:
         "episodes <= 5 s (issue 13). The vector env steps on numba's threads (chosen automatically for N >= 256).",
         ""]
     text = "\n".join(lines)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(text)
-    print(text)
-    return text
+    return write_report(a.out, text)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ import numpy as np
 import auv_follow_env  # noqa: F401
 from controllers.evaluation import evaluate
 from controllers.mpc import MPCConfig, MPCController
+from experiments.outputs import output_path, write_report
 
 DEFAULT = MPCConfig()
 VARIANTS: tuple[tuple[str, MPCConfig], ...] = (
@@ -52,13 +53,15 @@ class _BoundCheck:
 def main(argv: list[str] | None = None) -> str:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--episodes", type=int, default=3, help="S4 episodes (seeds 0..N-1) per setting")
-    p.add_argument("--out", type=Path, default=Path("results/bench_mpc.md"))
+    p.add_argument("--out", type=Path, default=None,
+                   help="Markdown output (default: results/bench_mpc.md; results/tmp/ with non-default settings)")
     p.add_argument("--episode-s", type=float, default=None, help="episode length [s] (default 60; smoke tests)")
     a = p.parse_args(argv)
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
     if a.episode_s is not None and not a.episode_s > 0:
         p.error(f"--episode-s must be > 0, got {a.episode_s}")
+    a.out = output_path(a, p, Path("results/bench_mpc.md"))
     kw = {"episode_s": a.episode_s, "steady_start_s": min(10.0, a.episode_s / 2)} if a.episode_s is not None else {}
     spec = gym.make("AUVFollow-S4-v0", **kw).unwrapped.task_spec
     rows = []
@@ -85,10 +88,7 @@ def main(argv: list[str] | None = None) -> str:
         lines.append(f"| {label} | {med:.2f} | {p99:.2f} | {mx:.1f} | {per:.2f} | {err:.4f} | {bad} / {steps} |")
     lines += ["", "Requirement: median < 10 ms, p99 < 50 ms per step (real time at 20 Hz).", ""]
     text = "\n".join(lines)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(text)
-    print(text)
-    return text
+    return write_report(a.out, text)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ import gymnasium as gym
 import numpy as np
 
 import auv_follow_env  # noqa: F401  (registers the ids)
-from experiments.outputs import output_path
+from experiments.outputs import output_path, write_report
 
 ENVS = ("AUVFollow-S4-v0", "Pendulum-v1")
 
@@ -91,11 +91,7 @@ def main(argv: list[str] | None = None) -> dict:
               f"{stable_baselines3.__version__}, gymnasium {gym.__version__}, numpy {np.__version__}, "
               f"{platform.machine()}.", "",
               f"Reproduce: `python experiments/bench_ppo.py --timesteps {a.timesteps}`", ""]
-    text = "\n".join(lines)
-    print(text)
-    out = Path(a.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
+    write_report(Path(a.out), "\n".join(lines))
     return {"rows": rows, "raw_us": raw}
 
 

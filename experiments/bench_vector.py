@@ -37,7 +37,7 @@ from numba import njit
 import auv_follow_env  # noqa: F401  (registers the ids)
 from auv_follow_env import dynamics as dyn
 from auv_follow_env.sim import BatchSim
-from experiments.outputs import output_path
+from experiments.outputs import output_path, write_report
 
 
 @dataclass
@@ -431,10 +431,7 @@ def main(argv: list[str] | None = None) -> str:
     machine = machine_throughput(args.budget, args.repeats)
     policy = bench_policy(args, n) if args.policy else float("nan")
     text = report(args, rows, load, _load(), prof, machine, policy)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
-    return text
+    return write_report(args.out, text)
 
 
 if __name__ == "__main__":

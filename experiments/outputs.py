@@ -13,7 +13,7 @@ import sys
 from collections.abc import Iterable
 from pathlib import Path
 
-__all__ = ["output_path", "scratch_path"]
+__all__ = ["output_path", "scratch_path", "write_report"]
 
 
 def scratch_path(committed: Path) -> Path:
@@ -48,3 +48,13 @@ def output_path(args: argparse.Namespace, parser: argparse.ArgumentParser, commi
     print(f"non-default settings ({flags}): writing to {tmp} (ignored by git), not to the committed {committed}; "
           "give --out to choose the place", file=sys.stderr)
     return tmp
+
+
+def write_report(path: Path, text: str) -> str:
+    """Write a Markdown report (creating its folder), print it and say where; returns ``text``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    print(text)
+    print(f"written to {path}")
+    return text
