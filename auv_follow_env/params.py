@@ -647,8 +647,9 @@ def make_config(scenario: str = "S4", disturbance: str | None = None, *, version
     if "mismatch" in rng_map:
         env_kw["mismatch"] = 0.5 * sum(rng_map["mismatch"])
     env_kw.setdefault("delay_s", 0.0)
-    if cond.update_period_s < dt - 1e-12 and "update_period_s" not in rng_map:
-        raise ValueError(f"update_period_s={cond.update_period_s} is invalid: must be >= dt={dt} s "
+    period = rng_map["update_period_s"] if "update_period_s" in rng_map else cond.update_period_s
+    if min(np.atleast_1d(period)) < dt - 1e-12:  # a range is checked at its lower end
+        raise ValueError(f"update_period_s={period} is invalid: must be >= dt={dt} s "
                          f"(at most one packet per control step)")
     return EnvConfig(scenario=sc, disturbance=DISTURBANCE_LEVELS[level], condition=cond,
                      ranges=MappingProxyType(dict(rng_map)), tier=tier, **env_kw)

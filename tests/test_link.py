@@ -403,6 +403,7 @@ def test_no_packet_yet_is_flagged_and_zeroed():
     (dict(loss_prob=-0.1), "loss_prob"),
     (dict(update_period_s=0.0), "update_period_s"),
     (dict(update_period_s=0.01), "update_period_s"),
+    (dict(update_period_s=(0.01, 1.0)), "update_period_s"),
     (dict(latency_model="lognormal"), "latency_model"),
     (dict(fix_sigma_m=-1.0), "fix_sigma_m"),
     (dict(latency_s="1.0"), "latency_s"),
