@@ -81,16 +81,22 @@ def link_row(row: np.ndarray, c: Condition, dt: float, vehicle: VehicleParams) -
     return row
 
 
-def sample_params(config: EnvConfig, rng: np.random.Generator) -> np.ndarray:
+def sample_params(config: EnvConfig, rng: np.random.Generator, *, vehicle: VehicleParams | None = None,
+                  target: tuple[float, float, float] | None = None,
+                  current: tuple[tuple[float, float], tuple[float, float]] | None = None) -> np.ndarray:
     """Draw one episode's parameters from ``rng`` (always exactly 12 uniforms, in order).
 
     Random: the target's two manoeuvre phases, the current's periods and phases, and the
-    six disturbance-tone phases. Fixed by the config: everything else.
+    six disturbance-tone phases. Fixed by the config: everything else, unless given here
+    (v1 draws them per reset): ``vehicle`` (the true plant), ``target`` = (v_bar, a_u, a_r),
+    ``current`` = the (min, max) ranges of the x and y tone current.
     """
     u = rng.random(12)
     tp = config.scenario.target
     lvl = config.disturbance
-    veh = config.true_vehicle
+    veh = config.true_vehicle if vehicle is None else vehicle
+    speed, surge_amp, yaw_amp = (tp.speed, tp.surge_amp, tp.yaw_rate_amp) if target is None else target
+    cur_x, cur_y = (lvl.current_x, lvl.current_y) if current is None else current
     lo, hi = CURRENT_PERIOD_RANGE
 
     def cur(rng_pair: tuple[float, float], up: float, uph: float) -> tuple[float, float, float, float]:
@@ -102,10 +108,10 @@ def sample_params(config: EnvConfig, rng: np.random.Generator) -> np.ndarray:
     dist = tuple((w1 * pk * sc, TWO_PI * u[6 + 2 * c], w2 * pk * sc, TWO_PI * u[7 + 2 * c])
                  for c, (pk, sc) in enumerate(zip(lvl.peaks, scale, strict=False)))
     return param_row(
-        vehicle=veh, target_speed=tp.speed, surge_amp=tp.surge_amp, surge_period=tp.surge_period,
-        surge_phase=TWO_PI * u[0], yaw_rate_amp=tp.yaw_rate_amp, yaw_period=tp.yaw_period,
-        yaw_phase=TWO_PI * u[1], current_x=cur(lvl.current_x, u[2], u[3]),
-        current_y=cur(lvl.current_y, u[4], u[5]), disturbance=dist, latency_steps=config.delay_steps)
+        vehicle=veh, target_speed=speed, surge_amp=surge_amp, surge_period=tp.surge_period,
+        surge_phase=TWO_PI * u[0], yaw_rate_amp=yaw_amp, yaw_period=tp.yaw_period,
+        yaw_phase=TWO_PI * u[1], current_x=cur(cur_x, u[2], u[3]),
+        current_y=cur(cur_y, u[4], u[5]), disturbance=dist, latency_steps=config.delay_steps)
 
 
 def sample_params_v1(config: EnvConfig, rng: np.random.Generator) -> tuple[np.ndarray, int, float, dict]:
@@ -126,26 +132,19 @@ def sample_params_v1(config: EnvConfig, rng: np.random.Generator) -> tuple[np.nd
             drawn[name] = lo + (hi - lo) * float(rng.random())
     mismatch = drawn.pop("mismatch", config.mismatch)
     if drawn:
-        c = dataclasses.replace(c, **drawn)
-    cfg = dataclasses.replace(config, mismatch=mismatch, ranges={}) if mismatch != config.mismatch else config
-    sc = config.scenario
-    if c.current_x is not None or c.current_y is not None:
-        lvl = config.disturbance
-        cfg = dataclasses.replace(cfg, disturbance=dataclasses.replace(
-            lvl, current_x=c.current_x or lvl.current_x, current_y=c.current_y or lvl.current_y))
-    cfg = dataclasses.replace(cfg, scenario=dataclasses.replace(sc, target=dataclasses.replace(
-        sc.target, speed=max(c.target_speed, 1e-9), surge_amp=c.target_surge_amp, yaw_rate_amp=c.target_yaw_rate_amp)))
-    row = sample_params(cfg, rng)
-    if c.target_speed == 0.0:
-        row[dyn.P_TV] = 0.0
+        c = dataclasses.replace(c, **drawn)  # validates the drawn combination
+    vehicle = config.nominal.with_mismatch(mismatch)
+    lvl = config.disturbance
+    current = (c.current_x or lvl.current_x, c.current_y or lvl.current_y)
+    row = sample_params(config, rng, vehicle=vehicle, target=(c.target_speed, c.target_surge_amp,
+                                                              c.target_yaw_rate_amp), current=current)
     direction = TWO_PI * float(rng.random())
     if c.current_direction_rad is not None:
         direction = float(c.current_direction_rad)
     seed = int(rng.integers(0, 2**63, dtype=np.int64))
-    link_row(row, c, config.dt, cfg.true_vehicle)
-    condition = {**c.as_dict(), "mismatch": mismatch, "current_direction_rad": direction}
-    for n in ("current_x", "current_y"):
-        condition[n] = getattr(cfg.disturbance, n)
+    link_row(row, c, config.dt, vehicle)
+    condition = {**c.as_dict(), "mismatch": mismatch, "current_direction_rad": direction,
+                 "current_x": current[0], "current_y": current[1]}
     return row, seed, direction, condition
 
 
