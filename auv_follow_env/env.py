@@ -12,7 +12,7 @@ from gymnasium import spaces
 from auv_follow_env import dynamics as dyn
 from auv_follow_env.metrics import tracking_metrics
 from auv_follow_env.params import TaskSpec
-from auv_follow_env.sim import BatchSim
+from auv_follow_env.sim import BatchSim, check_fast_math
 from auv_follow_env.tiers import make_env_config, tier_table_markdown
 
 __all__ = ["AUVFollowEnv", "check_action"]
@@ -138,6 +138,15 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
     ``init_offset_m``, ``max_distance_m``, ``effort_weight``, ``p_d``, ``psi_d``,
     ``steady_start_s``; see :class:`~auv_follow_env.params.EnvConfig`.
 
+    ``fast_math`` (default ``False``, on every id): compute the sin/cos of each step (the ten
+    tones and both headings: 14 of the step's 15 sin/cos pairs) with a branch-free polynomial
+    (:func:`~auv_follow_env.dynamics.fast_sincos`, within 1 ULP) in SIMD loops instead of
+    glibc's scalar libm calls. Faster (results/bench_vector.md), but not bit-identical to the
+    default: about 3 % of the values differ in their last bit, so trajectories differ from
+    the default's by rounding-level amounts (tests/test_fast_math.py bounds them). The
+    default is what the frozen v0 results, the tiers' published scores and the leaderboard
+    use; use ``fast_math`` for throughput (sweeps, training), not for scores you publish.
+
     ## v1: the acoustic link (``AUVFollow-Easy-v1`` ... ``-Extreme-v1``, ``AUVFollow-v1``)
 
     The same plant, action, reward and episode end; what changes is what the follower hears
@@ -194,7 +203,8 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def __init__(self, scenario: str = "S4", disturbance: str | None = None,
                  render_mode: str | None = None, *, version: str = "v0", tier: str | None = None,
-                 **overrides: Any) -> None:
+                 fast_math: bool = False, **overrides: Any) -> None:
+        fast_math = check_fast_math(fast_math)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r} is unknown: valid modes are "
                              f"{self.metadata['render_modes']} or None")
@@ -204,7 +214,9 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.config.dt))}
         self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
         self.observation_space = spaces.Box(-np.inf, np.inf, (self.task_spec.obs_dim,), np.float32)
-        self._sim = BatchSim(self.config, 1)
+        self._sim = BatchSim(self.config, 1, fast_math)
+        #: whether the step's sin/cos are the SIMD polynomial (``fast_math=True``) instead of libm
+        self.fast_math = fast_math
         self._kernel, self._args = self._sim.step_call()
         self._n_steps = self.config.n_steps
         self._started = False

@@ -21,7 +21,7 @@ from auv_follow_env import dynamics as dyn
 from auv_follow_env.env import check_action
 from auv_follow_env.metrics import METRIC_KEYS, tracking_metrics
 from auv_follow_env.params import TaskSpec
-from auv_follow_env.sim import BatchSim
+from auv_follow_env.sim import BatchSim, check_fast_math
 from auv_follow_env.tiers import make_env_config
 
 __all__ = ["AUVFollowVectorEnv"]
@@ -143,6 +143,7 @@ class AUVFollowVectorEnv(VectorEnv):
     ``OMP_WAIT_POLICY=PASSIVE`` in the process environment unless it is set (idle OpenMP
     workers sleep rather than spin: spinning workers slowed threaded steps many times over
     on a shared machine).
+    ``fast_math`` (default ``False``): see :class:`~auv_follow_env.env.AUVFollowEnv`.
     """
 
     metadata = {"render_modes": [], "render_fps": 20, "autoreset_mode": AutoresetMode.NEXT_STEP}
@@ -150,7 +151,8 @@ class AUVFollowVectorEnv(VectorEnv):
     def __init__(self, num_envs: int = 1, scenario: str = "S4", disturbance: str | None = None,
                  render_mode: str | None = None, max_episode_steps: int | None = None,
                  parallel: bool | None = None, *, version: str = "v0", tier: str | None = None,
-                 **overrides: Any) -> None:
+                 fast_math: bool = False, **overrides: Any) -> None:
+        fast_math = check_fast_math(fast_math)
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs={num_envs!r} is invalid: must be an integer >= 1")
         if render_mode is not None:
@@ -172,7 +174,9 @@ class AUVFollowVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
 
-        self._sim = BatchSim(self.config, self.num_envs)
+        self._sim = BatchSim(self.config, self.num_envs, fast_math)
+        #: whether the step's sin/cos are the SIMD polynomial (``fast_math=True``) instead of libm
+        self.fast_math = fast_math
         self._kernel, self._args = self._sim.step_call()
         if parallel is not None and not isinstance(parallel, (bool, np.bool_)):
             raise ValueError(f"parallel={parallel!r} is invalid: pass None (automatic), True or False")

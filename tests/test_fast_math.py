@@ -1,0 +1,150 @@
+"""fast_math: the SIMD sin/cos polynomial, and what it does (and does not do) to results.
+
+The reference values are numpy's extended-precision (x87, 64-bit mantissa) sin/cos, which
+are independent of both the polynomial and glibc's double-precision sin/cos."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from numba import njit
+
+import auv_follow_env  # noqa: F401  (registers the ids)
+from auv_follow_env import dynamics as dyn
+from auv_follow_env.env import AUVFollowEnv
+from auv_follow_env.vector_env import AUVFollowVectorEnv
+from controllers import make_controller
+
+HAS_LONGDOUBLE = np.finfo(np.longdouble).nmant >= 63
+
+
+@njit
+def _fast_all(x, s, c):
+    for i in range(x.shape[0]):
+        s[i], c[i] = dyn.fast_sincos(x[i])
+
+
+@njit
+def _rows(x, fast):
+    """dyn._sincos_rows over one block-sized row of arguments (row 0 -> rows 1 and 2)."""
+    wk = np.zeros(3 * dyn.BLOCK)
+    m = x.shape[0]
+    for b in range(m):
+        wk[b] = x[b]
+    dyn._sincos_rows(wk, 0, 1, 2, m, fast)
+    return wk[dyn.BLOCK:dyn.BLOCK + m].copy(), wk[2 * dyn.BLOCK:2 * dyn.BLOCK + m].copy()
+
+
+def _ulps(got: np.ndarray, exact: np.ndarray) -> np.ndarray:
+    """|got - exact| in units of the last place of the double nearest to the exact value."""
+    nearest = exact.astype(np.float64)
+    return (np.abs(got.astype(np.longdouble) - exact) / np.spacing(np.abs(nearest)).astype(np.longdouble)).astype(
+        np.float64)
+
+
+@pytest.mark.skipif(not HAS_LONGDOUBLE, reason="needs an extended-precision long double reference")
+@pytest.mark.parametrize("lo,hi", [(-np.pi / 4, np.pi / 4), (-4.0, 4.0), (-70.0, 70.0), (-1e5, 1e5)])
+def test_fast_sincos_is_within_one_ulp(lo, hi):
+    x = np.random.default_rng(7).uniform(lo, hi, 200_000)
+    s, c = np.empty_like(x), np.empty_like(x)
+    _fast_all(x, s, c)
+    xl = x.astype(np.longdouble)
+    assert _ulps(s, np.sin(xl)).max() <= 1.0
+    assert _ulps(c, np.cos(xl)).max() <= 1.0
+
+
+def test_fast_sincos_exact_points_and_quadrants():
+    s, c = np.empty(1), np.empty(1)
+    _fast_all(np.zeros(1), s, c)
+    assert (s[0], c[0]) == (0.0, 1.0)
+    # the quadrant logic: sin/cos of k pi/2 + 0.3 against the closed forms
+    base_s, base_c = np.sin(0.3), np.cos(0.3)
+    expected = {0: (base_s, base_c), 1: (base_c, -base_s), 2: (-base_s, -base_c), 3: (-base_c, base_s)}
+    for k in range(-8, 9):
+        x = np.array([k * np.pi / 2 + 0.3])
+        _fast_all(x, s, c)
+        es, ec = expected[k % 4]
+        assert s[0] == pytest.approx(es, abs=1e-14) and c[0] == pytest.approx(ec, abs=1e-14), k
+
+
+def test_sincos_rows_fall_back_to_libm_for_huge_arguments():
+    x = np.array([0.5, 3.0e7, -2.0e6, 1.0])  # two lanes beyond FAST_TRIG_MAX
+    s, c = _rows(x, True)
+    big = np.abs(x) > dyn.FAST_TRIG_MAX
+    assert big.sum() == 2
+    np.testing.assert_array_equal(s[big], np.array([np.sin(v) for v in x[big]]))
+    np.testing.assert_array_equal(c[big], np.array([np.cos(v) for v in x[big]]))
+    s0, c0 = _rows(x, False)  # libm everywhere: the default path
+    np.testing.assert_array_equal(s0, [np.sin(v) for v in x])
+    np.testing.assert_array_equal(c0, [np.cos(v) for v in x])
+
+
+def _proposed_run(env_id: str, seeds: list[int], fast: bool):
+    venv = gym.make_vec(env_id, num_envs=len(seeds), vectorization_mode="vector_entry_point", parallel=False,
+                        fast_math=fast)
+    spec = venv.unwrapped.task_spec
+    obs, _ = venv.reset(seed=seeds)
+    pol = make_controller("PROPOSED", spec)
+    first = np.ones(len(seeds), dtype=bool)
+    poses, ends = [], []
+    for _ in range(spec.n_steps):
+        a, _ = pol.predict(obs, episode_start=first)
+        first[:] = False
+        obs, _, term, trunc, info = venv.step(a)
+        poses.append(info["follower_pose"].copy())
+        ends.append(term | trunc)
+    venv.close()
+    return np.array(poses), np.array(ends)
+
+
+@pytest.mark.parametrize("env_id,seeds", [("AUVFollow-S4-v0", list(range(6))),
+                                          ("AUVFollow-Hard-v1", list(range(3_000_000, 3_000_006)))])
+def test_fast_math_trajectories_stay_within_1e_12_of_the_default(env_id, seeds):
+    """Full 60 s PROPOSED episodes: the follower's pose differs by rounding only (the issue's
+    bound is 1e-12; the float32 observations absorb last-bit differences of the state)."""
+    exact, ends0 = _proposed_run(env_id, seeds, False)
+    fast, ends1 = _proposed_run(env_id, seeds, True)
+    np.testing.assert_array_equal(ends0, ends1)
+    assert np.abs(fast - exact).max() < 1e-12
+    assert not np.array_equal(fast, exact)  # it is a different computation, not the default again
+
+
+def test_fast_math_parallel_equals_serial_bit_for_bit():
+    n = 512
+    acts = np.random.default_rng(3).uniform(-1, 1, (30, n, 3)).astype(np.float32)
+    out = []
+    for par in (False, True):
+        venv = AUVFollowVectorEnv(num_envs=n, parallel=par, fast_math=True)
+        obs, _ = venv.reset(seed=11)
+        for a in acts:
+            obs, *_ = venv.step(a)
+        out.append((obs.copy(), venv._sim.state.copy()))
+    np.testing.assert_array_equal(out[0][0], out[1][0])
+    np.testing.assert_array_equal(out[0][1], out[1][1])
+
+
+def test_single_env_fast_math_equals_the_vector_env():
+    env = AUVFollowEnv(fast_math=True)
+    venv = AUVFollowVectorEnv(num_envs=1, fast_math=True)
+    o1, _ = env.reset(seed=4)
+    o2, _ = venv.reset(seed=4)
+    acts = np.random.default_rng(0).uniform(-1, 1, (50, 3)).astype(np.float32)
+    for a in acts:
+        o1, *_ = env.step(a)
+        o2, *_ = venv.step(a[None])
+    np.testing.assert_array_equal(o1, o2[0])
+    assert env.fast_math and venv.fast_math
+
+
+@pytest.mark.parametrize("bad", [1, "yes", None, 0.0])
+def test_fast_math_must_be_a_bool(bad):
+    with pytest.raises(ValueError, match="fast_math"):
+        AUVFollowVectorEnv(num_envs=2, fast_math=bad)
+    with pytest.raises(ValueError, match="fast_math"):
+        gym.make("AUVFollow-S4-v0", fast_math=bad)
+
+
+def test_default_is_libm():
+    assert AUVFollowVectorEnv(num_envs=2).fast_math is False
+    assert gym.make("AUVFollow-Hard-v1").unwrapped.fast_math is False
