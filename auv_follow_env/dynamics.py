@@ -965,40 +965,52 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
     dt = cfg[C_DT]
     nsub = int(cfg[C_NSUB])
     wk = np.zeros(NK * BLOCK)  # forces stay 0 in the warm-up (the follower is placed below)
-    for n in range(idx.shape[0]):
-        i = idx[n]
-        rs[i] = np.uint64(seeds[n])
-        for c in range(9):
-            state[i, c] = 0.0
-        _init_processes(proc, rs, p, i, directions[n])
-        proc[i, R_NEXT] = -W
-        proc[i, R_LAST_SEND] = -W
-        link_tick(state, proc, queue, rs, p, cfg, i, -W)
-        gather_block(state, p, i, 1, wk)
-        for step in range(-W, 0):
-            _load_random_forcing(proc, i, wk, 0)
-            wk[_ix(K_T0, 0)] = step * dt
-            advance_block(wk, dt, nsub, 1, False)
+    for n0 in range(0, idx.shape[0], BLOCK):  # the warm-up of up to BLOCK envs at once
+        m = min(BLOCK, idx.shape[0] - n0)
+        for b in range(m):
+            i = idx[n0 + b]
+            rs[i] = np.uint64(seeds[n0 + b])
             for c in range(9):
-                state[i, c] = wk[_ix(K_ST + c, 0)]
-            update_processes(proc, rs, p, i)
-            link_tick(state, proc, queue, rs, p, cfg, i, step + 1)
-        if proc[i, R_HAS] != 0.0:
-            xd, yd, psd = proc[i, R_HX], proc[i, R_HX + 1], proc[i, R_HX + 2]
-        else:
-            xd, yd, psd = state[i, 6], state[i, 7], state[i, 8]
-        cd = math.cos(psd)
-        sd = math.sin(psd)
-        bx = cfg[C_PDX] - cfg[C_INIT]  # behind the delayed reference, target body frame
-        by = cfg[C_PDY]
-        state[i, 0] = xd + cd * bx - sd * by
-        state[i, 1] = yd + sd * bx + cd * by
-        state[i, 2] = psd
-        state[i, 3] = 0.0
-        state[i, 4] = 0.0
-        state[i, 5] = 0.0
-        k[i] = 0
-        _observe(state, k, proc, p, cfg, i, obs, truth)
+                state[i, c] = 0.0
+            _init_processes(proc, rs, p, i, directions[n0 + b])
+            proc[i, R_NEXT] = -W
+            proc[i, R_LAST_SEND] = -W
+            link_tick(state, proc, queue, rs, p, cfg, i, -W)
+            gather_block(state, p, i, 1, wk[b:])  # lane b (rows keep their BLOCK stride)
+        for step in range(-W, 0):
+            for b in range(m):
+                _load_random_forcing(proc, idx[n0 + b], wk, b)
+                wk[_ix(K_T0, b)] = step * dt
+            advance_block(wk, dt, nsub, m, False)
+            for b in range(m):
+                i = idx[n0 + b]
+                for c in range(9):
+                    state[i, c] = wk[_ix(K_ST + c, b)]
+                update_processes(proc, rs, p, i)
+                link_tick(state, proc, queue, rs, p, cfg, i, step + 1)
+        for b in range(m):
+            _place_follower(state, k, proc, p, cfg, idx[n0 + b], obs, truth)
+
+
+@njit(cache=True)
+def _place_follower(state, k, proc, p, cfg, i, obs, truth):
+    """After the warm-up: the follower at rest behind the held packet's reference point."""
+    if proc[i, R_HAS] != 0.0:
+        xd, yd, psd = proc[i, R_HX], proc[i, R_HX + 1], proc[i, R_HX + 2]
+    else:
+        xd, yd, psd = state[i, 6], state[i, 7], state[i, 8]
+    cd = math.cos(psd)
+    sd = math.sin(psd)
+    bx = cfg[C_PDX] - cfg[C_INIT]  # behind the delayed reference, target body frame
+    by = cfg[C_PDY]
+    state[i, 0] = xd + cd * bx - sd * by
+    state[i, 1] = yd + sd * bx + cd * by
+    state[i, 2] = psd
+    state[i, 3] = 0.0
+    state[i, 4] = 0.0
+    state[i, 5] = 0.0
+    k[i] = 0
+    _observe(state, k, proc, p, cfg, i, obs, truth)
 
 
 @njit(cache=True)

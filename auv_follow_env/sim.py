@@ -17,7 +17,7 @@ from auv_follow_env import dynamics as dyn
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1
 from auv_follow_env.params import LATENCY_MODELS, RANGEABLE, Condition, EnvConfig, VehicleParams
 
-__all__ = ["BatchSim", "param_row", "sample_params", "sample_params_v1", "link_row", "config_vector",
+__all__ = ["BatchSim", "param_row", "sample_params", "params_from_uniforms", "sample_params_v1", "link_row", "config_vector",
            "queue_capacity", "check_fast_math"]
 
 TWO_PI = 2.0 * math.pi
@@ -91,27 +91,41 @@ def sample_params(config: EnvConfig, rng: np.random.Generator, *, vehicle: Vehic
     (v1 draws them per reset): ``vehicle`` (the true plant), ``target`` = (v_bar, a_u, a_r),
     ``current`` = the (min, max) ranges of the x and y tone current.
     """
-    u = rng.random(12)
+    return params_from_uniforms(config, rng.random(12)[None, :], vehicle=vehicle, target=target,
+                                current=current)[0]
+
+
+def params_from_uniforms(config: EnvConfig, u: np.ndarray, *, vehicle: VehicleParams | None = None,
+                         target: tuple[float, float, float] | None = None,
+                         current: tuple[tuple[float, float], tuple[float, float]] | None = None) -> np.ndarray:
+    """The param rows (n, NP) of n episodes from their 12 uniforms each, ``u`` (n, 12), in
+    :func:`sample_params`' order (element-wise arithmetic: row j equals the scalar computation
+    on ``u[j]``, so a batch of resets gives the same rows as one reset at a time)."""
     tp = config.scenario.target
     lvl = config.disturbance
     veh = config.true_vehicle if vehicle is None else vehicle
     speed, surge_amp, yaw_amp = (tp.speed, tp.surge_amp, tp.yaw_rate_amp) if target is None else target
     cur_x, cur_y = (lvl.current_x, lvl.current_y) if current is None else current
     lo, hi = CURRENT_PERIOD_RANGE
-
-    def cur(rng_pair: tuple[float, float], up: float, uph: float) -> tuple[float, float, float, float]:
-        a, b = rng_pair
-        return (0.5 * (a + b), 0.5 * (b - a), TWO_PI / (lo + (hi - lo) * up), TWO_PI * uph)
-
+    rows = np.repeat(param_row(vehicle=veh, target_speed=speed, surge_amp=surge_amp, surge_period=tp.surge_period,
+                               yaw_rate_amp=yaw_amp, yaw_period=tp.yaw_period,
+                               latency_steps=config.delay_steps)[None, :], u.shape[0], axis=0)
+    rows[:, dyn.P_TPU] = TWO_PI * u[:, 0]
+    rows[:, dyn.P_TPR] = TWO_PI * u[:, 1]
+    for col, (a, b), j in ((dyn.P_CX, cur_x, 2), (dyn.P_CY, cur_y, 4)):
+        rows[:, col] = 0.5 * (a + b)
+        rows[:, col + 1] = 0.5 * (b - a)
+        rows[:, col + 2] = TWO_PI / (lo + (hi - lo) * u[:, j])
+        rows[:, col + 3] = TWO_PI * u[:, j + 1]
     scale = (veh.m, veh.m, veh.I_z)  # Table 3 peaks read per unit mass (docs/paper_notes.md)
     w1, w2 = dyn.DIST_WEIGHT
-    dist = tuple((w1 * pk * sc, TWO_PI * u[6 + 2 * c], w2 * pk * sc, TWO_PI * u[7 + 2 * c])
-                 for c, (pk, sc) in enumerate(zip(lvl.peaks, scale, strict=False)))
-    return param_row(
-        vehicle=veh, target_speed=speed, surge_amp=surge_amp, surge_period=tp.surge_period,
-        surge_phase=TWO_PI * u[0], yaw_rate_amp=yaw_amp, yaw_period=tp.yaw_period,
-        yaw_phase=TWO_PI * u[1], current_x=cur(cur_x, u[2], u[3]),
-        current_y=cur(cur_y, u[4], u[5]), disturbance=dist, latency_steps=config.delay_steps)
+    for c, (pk, sc) in enumerate(zip(lvl.peaks, scale, strict=True)):
+        col = dyn.P_D + 4 * c
+        rows[:, col] = w1 * pk * sc
+        rows[:, col + 1] = TWO_PI * u[:, 6 + 2 * c]
+        rows[:, col + 2] = w2 * pk * sc
+        rows[:, col + 3] = TWO_PI * u[:, 7 + 2 * c]
+    return rows
 
 
 def sample_params_v1(config: EnvConfig, rng: np.random.Generator) -> tuple[np.ndarray, int, float, dict]:
@@ -225,11 +239,13 @@ class BatchSim:
         idx = np.asarray(idx, dtype=np.int64)
         seeds = np.zeros(len(idx), dtype=np.int64)
         directions = np.zeros(len(idx))
-        for j, (i, rng) in enumerate(zip(idx, rngs, strict=True)):
-            if self.v1:
+        if len(rngs) != len(idx):
+            raise ValueError(f"{len(idx)} envs to reset but {len(rngs)} generators")
+        if self.v1:
+            for j, (i, rng) in enumerate(zip(idx, rngs, strict=True)):
                 self.params[i], seeds[j], directions[j], self.conditions[i] = sample_params_v1(self.config, rng)
-            else:
-                self.params[i] = sample_params(self.config, rng)
+        elif len(idx):  # v0: each env's 12 uniforms from its own generator, then the rows at once
+            self.params[idx] = params_from_uniforms(self.config, np.array([rng.random(12) for rng in rngs]))
         dyn.reset_kernel(self.state, self.k, self.proc, self.queue, self.rs, self.params, self.cfg, idx, seeds,
                          directions, self.obs, self.truth)
 

@@ -19,7 +19,7 @@ from gymnasium.vector.utils import batch_space
 
 from auv_follow_env import dynamics as dyn
 from auv_follow_env.env import check_action
-from auv_follow_env.metrics import METRIC_KEYS, tracking_metrics
+from auv_follow_env.metrics import METRIC_KEYS, batch_tracking_metrics
 from auv_follow_env.params import TaskSpec
 from auv_follow_env.sim import BatchSim, check_fast_math
 from auv_follow_env.tiers import make_env_config
@@ -346,10 +346,13 @@ class AUVFollowVectorEnv(VectorEnv):
         """The paper's metrics of the episodes that ended (NaN elsewhere), with masks."""
         out = {key: np.full(self.num_envs, np.nan) for key in METRIC_KEYS}
         sim = self._sim
-        steady = self.config.steady_start_s
-        for i in np.flatnonzero(done):
-            for key, value in tracking_metrics(*sim.errors(i), steady).items():
-                out[key][i] = value
+        ids = np.flatnonzero(done)
+        lengths = np.minimum(sim.k[ids], self.config.n_steps)
+        for n in np.unique(lengths):  # the envs of one episode length at once (the same values)
+            group = ids[lengths == n]
+            for key, col in batch_tracking_metrics(sim.err_hist[group, :n], sim.sample_times[:n],
+                                                   self.config.steady_start_s).items():
+                out[key][group] = col
         for key in METRIC_KEYS:
             out["_" + key] = done.copy()
         return out

@@ -82,3 +82,28 @@ def test_rmse_inequality_holds():
 def test_bad_shapes_raise(e, t):
     with pytest.raises(ValueError, match="1-D"):
         tracking_metrics(e, t)
+
+
+def test_batch_tracking_metrics_by_hand_and_equal_to_the_single_episode_function():
+    from auv_follow_env.metrics import batch_tracking_metrics
+
+    e = np.array([[1.0, 2.0, 3.0], [0.0, 0.0, 4.0]])
+    t = np.array([5.0, 10.0, 15.0])
+    m = batch_tracking_metrics(e, t, steady_start=10.0)
+    np.testing.assert_allclose(m["full_mean"], [2.0, 4.0 / 3.0])
+    np.testing.assert_allclose(m["full_rmse"], [np.sqrt(14.0 / 3.0), np.sqrt(16.0 / 3.0)])
+    np.testing.assert_array_equal(m["full_max"], [3.0, 4.0])
+    np.testing.assert_allclose(m["steady_mean"], [2.5, 2.0])  # samples at t = 10 and 15
+    np.testing.assert_allclose(m["steady_rmse"], [np.sqrt(6.5), np.sqrt(8.0)])
+    assert np.isnan(batch_tracking_metrics(e, t, steady_start=99.0)["steady_mean"]).all()
+    # bit for bit the per-episode function (the vector env's metrics must equal the single env's)
+    rng = np.random.default_rng(0)
+    for n in (1, 7, 1200, 9000):
+        errs = rng.exponential(0.3, (9, n))
+        times = 0.05 * np.arange(1, n + 1)
+        batch = batch_tracking_metrics(errs, times, 10.0)
+        for j in range(9):
+            for key, value in tracking_metrics(errs[j], times, 10.0).items():
+                assert value == batch[key][j] or (math.isnan(value) and math.isnan(batch[key][j])), (n, j, key)
+    with pytest.raises(ValueError, match="errors must be"):
+        batch_tracking_metrics(np.zeros(3), np.zeros(3))
