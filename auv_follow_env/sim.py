@@ -17,8 +17,8 @@ from auv_follow_env import dynamics as dyn
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1
 from auv_follow_env.params import LATENCY_MODELS, RANGEABLE, Condition, EnvConfig, VehicleParams
 
-__all__ = ["BatchSim", "param_row", "sample_params", "params_from_uniforms", "sample_params_v1", "link_row", "config_vector",
-           "queue_capacity", "check_fast_math"]
+__all__ = ["BatchSim", "param_row", "sample_params", "params_from_uniforms", "sample_params_v1", "link_row",
+           "config_vector", "queue_capacity", "check_fast_math"]
 
 TWO_PI = 2.0 * math.pi
 #: range of the current's period [s] (ours: "slowly varying", tens of seconds)
