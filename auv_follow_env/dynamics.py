@@ -903,8 +903,14 @@ def _observe(state, k, proc, p, cfg, i, obs, truth):
         ry = yd + sd * pdx + cd * pdy - y
         obs[i, 5] = c * ex + s * ey
         obs[i, 6] = -s * ex + c * ey
-        obs[i, 7] = math.cos(psd - ps)
-        obs[i, 8] = math.sin(psd - ps)
+        dpsi = psd - ps
+        if cfg[C_FAST] != 0.0 and abs(dpsi) <= FAST_TRIG_MAX:
+            sdp, cdp = fast_sincos(dpsi)
+        else:
+            cdp = math.cos(dpsi)
+            sdp = math.sin(dpsi)
+        obs[i, 7] = cdp
+        obs[i, 8] = sdp
         obs[i, 9] = proc[i, R_HX + 3]
         obs[i, 10] = proc[i, R_HX + 4]
         obs[i, 11] = proc[i, R_HX + 5]
@@ -1076,8 +1082,8 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, ter
             a2 = min(1.0, max(-1.0, float(action[3 * i + 2])))
             link_tick(state, proc, queue, rs, p, cfg, i, k[i])
             err = _observe(state, k, proc, p, cfg, i, obs, truth)
-            if k[i] - 1 < err_hist.shape[1]:
-                err_hist[i, k[i] - 1] = err
+            if k[i] - 1 < err_hist.shape[0]:
+                err_hist[k[i] - 1, i] = err
             finite = True
             for c in range(9):
                 if not math.isfinite(state[i, c]):
@@ -1101,7 +1107,7 @@ def step_kernel(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, te
     ``action`` is flat, length 3N, in [-1, 1] (clipped here) and scaled by the force
     limits. Returns -1, or the index of the first env whose action is not finite, in which
     case nothing at all was changed. Writes obs, truth, reward and termination flags, and
-    the error sample into err_hist[i, k - 1].
+    the error sample into err_hist[k - 1, i] (steps x envs: one contiguous row per step).
     """
     bad = first_bad_action(action)
     if bad >= 0:

@@ -229,7 +229,7 @@ class BatchSim:
         self.conditions: list[dict | None] = [None] * num_envs
         self.obs = np.zeros((num_envs, OBS_DIM_V1 if self.v1 else OBS_DIM), dtype=np.float32)
         self.truth = np.zeros((num_envs, dyn.NT))
-        self.err_hist = np.zeros((num_envs, config.n_steps))
+        self.err_hist = np.zeros((config.n_steps, num_envs))  # step x env: each step writes one row
         self.rew = np.zeros(num_envs)
         self.term = np.zeros(num_envs, dtype=np.bool_)
         self.sample_times = config.dt * np.arange(1, config.n_steps + 1)
@@ -269,4 +269,4 @@ class BatchSim:
     def errors(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """(errors, times) recorded so far in env i's episode (post-step samples)."""
         n = min(int(self.k[i]), self.config.n_steps)
-        return self.err_hist[i, :n], self.sample_times[:n]
+        return self.err_hist[:n, i], self.sample_times[:n]

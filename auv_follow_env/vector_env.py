@@ -350,7 +350,7 @@ class AUVFollowVectorEnv(VectorEnv):
         lengths = np.minimum(sim.k[ids], self.config.n_steps)
         for n in np.unique(lengths):  # the envs of one episode length at once (the same values)
             group = ids[lengths == n]
-            for key, col in batch_tracking_metrics(sim.err_hist[group, :n], sim.sample_times[:n],
+            for key, col in batch_tracking_metrics(sim.err_hist[:n, group].T, sim.sample_times[:n],
                                                    self.config.steady_start_s).items():
                 out[key][group] = col
         for key in METRIC_KEYS:
