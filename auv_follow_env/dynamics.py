@@ -614,7 +614,7 @@ def _gm(x, a, std, rs, proc, i):
     return a * x + math.sqrt(1.0 - a * a) * std * normal01(rs, proc, i)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def update_processes(proc, rs, p, i):
     """Advance env i's random processes by one control step (draws only where a std > 0)."""
     if p[i, P_OUU_STD] > 0.0:
@@ -652,7 +652,7 @@ def _heading_trig(proc, key, col, x):
     return proc[col], proc[col + 1]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def refresh_trig(state, k, proc, p, cfg, i):
     """Make env i's cached libm values those of its present state and time (computed only
     where the keys differ): the ten tones at t = k dt and cos/sin of both headings."""
@@ -803,7 +803,7 @@ def _send(state, proc, queue, rs, p, cfg, i, step):
     proc[i, R_QLEN] = n + 1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def link_tick(state, proc, queue, rs, p, cfg, i, step):
     """The link at control step ``step``: send if due, then take the newest arrived packet."""
     if step >= proc[i, R_NEXT] - 1e-9:
@@ -855,7 +855,7 @@ def _lag(prev, cmd, alpha, lim):
     return new
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def thrusters(proc, p, cfg, i, fu, fv, fr):
     """Applied forces from the commanded ones: first-order lag and rate limit (none in v0)."""
     alpha = p[i, P_TH_ALPHA]
@@ -871,7 +871,7 @@ def thrusters(proc, p, cfg, i, fu, fv, fr):
     return fu, fv, fr
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _observe(state, k, proc, p, cfg, i, obs, truth):
     """Fill obs[i] (what the follower has) and truth[i] (evaluation only); return error.
 
