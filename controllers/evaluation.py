@@ -237,6 +237,9 @@ def evaluate_controllers(names: Sequence[str] | None = None,
     return (metrics, pd.concat(ts, ignore_index=True)) if trajectories else metrics
 
 
+_ROWS = 64  #: rows per block in _tracking_metrics_rows
+
+
 def _tracking_metrics_rows(errors: np.ndarray, times: np.ndarray, steady_start: float) -> list[dict[str, float]]:
     """:func:`tracking_metrics` of each row of ``errors`` (m, T) over the same ``times`` (T,), T >= 1.
 
@@ -253,12 +256,14 @@ def _tracking_metrics_rows(errors: np.ndarray, times: np.ndarray, steady_start: 
         steady = e[:, first:] if window.any() else e[:, :0]
     else:  # (boolean indexing along axis 1 returns an F-ordered array: made C-contiguous)
         steady = np.ascontiguousarray(e[:, window])
-    cols = []
-    for w in (e, steady):
-        if w.shape[1] == 0:
-            cols += [np.full(len(e), np.nan)] * 3
-        else:
-            cols += [w.mean(axis=1), np.sqrt(np.mean(w * w, axis=1)), w.max(axis=1)]
+    cols = [np.full(len(e), np.nan) for _ in METRIC_KEYS]
+    for a in range(0, len(e), _ROWS):  # blocks of rows: small temporaries, rows still in cache
+        b = min(a + _ROWS, len(e))
+        for j, w in ((0, e[a:b]), (3, steady[a:b])):
+            if w.shape[1]:
+                cols[j][a:b] = w.mean(axis=1)
+                cols[j + 1][a:b] = np.sqrt(np.mean(w * w, axis=1))
+                cols[j + 2][a:b] = w.max(axis=1)
     return [dict(zip(METRIC_KEYS, vals, strict=True)) for vals in zip(*(c.tolist() for c in cols), strict=True)]
 
 
