@@ -7,6 +7,7 @@ import math
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1
 from auv_follow_env.params import TaskSpec
@@ -22,6 +23,19 @@ def wrap_to_pi(a: np.ndarray) -> np.ndarray:
 def sat(z: np.ndarray) -> np.ndarray:
     """Boundary-layer saturation, eq. (35): clip to [-1, 1]."""
     return np.clip(z, -1.0, 1.0)
+
+
+@njit(cache=True)
+def _to_actions(forces, limits, out):
+    """out = np.clip(forces / limits, -1, 1).astype(np.float32), in one pass (same operations)."""
+    for i in range(forces.shape[0]):
+        for j in range(forces.shape[1]):
+            z = forces[i, j] / limits[j]
+            if z < -1.0:
+                z = -1.0
+            elif z > 1.0:
+                z = 1.0
+            out[i, j] = np.float32(z)
 
 
 class FilteredDerivative:
@@ -121,7 +135,12 @@ class ScriptedPolicy:
             mask = as_mask(episode_start, n, "episode_start")
         forces = self.forces(obs, mask)
         self.last_forces = forces
-        actions = np.clip(forces / self._limits, -1.0, 1.0).astype(np.float32)
+        if (isinstance(forces, np.ndarray) and forces.dtype == np.float64 and forces.ndim == 2
+                and forces.shape[1] == self._limits.shape[0]):
+            actions = np.empty(forces.shape, dtype=np.float32)
+            _to_actions(forces, self._limits, actions)
+        else:
+            actions = np.clip(forces / self._limits, -1.0, 1.0).astype(np.float32)
         return (actions[0] if single else actions), state
 
     def __call__(self, observation: Any) -> np.ndarray:

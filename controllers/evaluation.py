@@ -90,18 +90,25 @@ def _check_seeds(seeds: Iterable[int]) -> list[int]:
 
 
 def _episode_outputs(spec: TaskSpec, name: str, seed: int, terminated: bool, ret: float, err: np.ndarray,
-                     own: np.ndarray, pose: np.ndarray | None = None, target: np.ndarray | None = None,
-                     ref: np.ndarray | None = None, force: np.ndarray | None = None):
+                     own: np.ndarray | None, pose: np.ndarray | None = None, target: np.ndarray | None = None,
+                     ref: np.ndarray | None = None, force: np.ndarray | None = None, *,
+                     err_own: np.ndarray | None = None, metrics: tuple[dict, dict] | None = None):
     """One episode's metrics row and (if ``pose`` is given) its trajectory frame.
 
     ``err`` (n,) true-reference errors; ``own`` (n, 3) own reference in the follower body frame;
     ``pose`` (n, 3), ``target`` (n, 3), ``ref`` (n, 2), ``force`` (n, 3) per step.
+    ``err_own`` (n,): ``hypot`` of own's first two columns, if already computed (``own`` is then
+    needed only for the frame); ``metrics``: the (true, own) :func:`tracking_metrics`, if already
+    computed.
     """
     n = len(err)
     times = spec.dt * np.arange(1, n + 1)
-    err_own = np.hypot(own[:, 0], own[:, 1])
-    m_true = tracking_metrics(err, times, spec.steady_start_s)
-    m_own = tracking_metrics(err_own, times, spec.steady_start_s)
+    if err_own is None:
+        err_own = np.hypot(own[:, 0], own[:, 1])
+    if metrics is None:
+        metrics = (tracking_metrics(err, times, spec.steady_start_s),
+                   tracking_metrics(err_own, times, spec.steady_start_s))
+    m_true, m_own = metrics
     row = {"scenario": spec.scenario, "disturbance": spec.disturbance, "policy": name, "seed": seed,
            "steps": n, "terminated": bool(terminated), "return": float(ret),
            **{f"true_{k}": v for k, v in m_true.items()}, **{f"own_{k}": v for k, v in m_own.items()}}
@@ -230,6 +237,36 @@ def evaluate_controllers(names: Sequence[str] | None = None,
     return (metrics, pd.concat(ts, ignore_index=True)) if trajectories else metrics
 
 
+_ROWS = 64  #: rows per block in _tracking_metrics_rows
+
+
+def _tracking_metrics_rows(errors: np.ndarray, times: np.ndarray, steady_start: float) -> list[dict[str, float]]:
+    """:func:`tracking_metrics` of each row of ``errors`` (m, T) over the same ``times`` (T,), T >= 1.
+
+    The same numpy reductions, each over one C-contiguous row (numpy's pairwise sum over the
+    same values in the same order; a reduction across a strided axis would add in another
+    order), so every value equals the 1-D call's bit for bit (tested).
+    """
+    e = np.asarray(errors, dtype=np.float64)
+    if e.strides[1] != e.itemsize:
+        e = np.ascontiguousarray(e)
+    window = np.asarray(times, dtype=np.float64) >= steady_start - 1e-9
+    first = int(np.argmax(window))
+    if window[first:].all():  # a suffix (times increase): a view of contiguous rows
+        steady = e[:, first:] if window.any() else e[:, :0]
+    else:  # (boolean indexing along axis 1 returns an F-ordered array: made C-contiguous)
+        steady = np.ascontiguousarray(e[:, window])
+    cols = [np.full(len(e), np.nan) for _ in METRIC_KEYS]
+    for a in range(0, len(e), _ROWS):  # blocks of rows: small temporaries, rows still in cache
+        b = min(a + _ROWS, len(e))
+        for j, w in ((0, e[a:b]), (3, steady[a:b])):
+            if w.shape[1]:
+                cols[j][a:b] = w.mean(axis=1)
+                cols[j + 1][a:b] = np.sqrt(np.mean(w * w, axis=1))
+                cols[j + 2][a:b] = w.max(axis=1)
+    return [dict(zip(METRIC_KEYS, vals, strict=True)) for vals in zip(*(c.tolist() for c in cols), strict=True)]
+
+
 def evaluate_batched(policies: Sequence[Any], env_id: str = "AUVFollow-S4-v0", seeds: Iterable[int] = (0,), *,
                      env_kwargs: dict | None = None, policy_names: Sequence[str] | None = None,
                      trajectories: bool = False, progress: bool = True, deterministic: bool = True):
@@ -263,8 +300,11 @@ def evaluate_batched(policies: Sequence[Any], env_id: str = "AUVFollow-S4-v0", s
     T = spec.n_steps
     blocks = [slice(p * S, (p + 1) * S) for p in range(P)]
     has_ref = [hasattr(p, "reference") for p in policies]
-    err = np.full((T, n), np.nan)
-    own = np.full((T, n, 3), np.nan)
+    # per env (row), one column per step: each episode's series is contiguous for its metrics
+    err = np.full((n, T), np.nan)
+    err_own = np.full((n, T), np.nan)
+    own = np.full((T, n, 3), np.nan) if trajectories else None
+    own_k = [np.full((S, 3), np.nan) for _ in range(P)]  # this step's own reference of each block
     pose = np.zeros((T, n, 3)) if trajectories else None
     target = np.zeros((T, n, 3)) if trajectories else None
     ref = np.zeros((T, n, 2)) if trajectories else None
@@ -281,31 +321,48 @@ def evaluate_batched(policies: Sequence[Any], env_id: str = "AUVFollow-S4-v0", s
                                                   deterministic=deterministic)
         start = np.zeros(S, dtype=bool)
         obs, reward, term, trunc, info = venv.step(actions)
-        err[k] = np.where(alive, info["tracking_error"], np.nan)
-        ret += np.where(alive, reward, 0.0)
+        np.copyto(err[:, k], info["tracking_error"], where=alive)  # err is NaN where not written
+        np.add(ret, reward, out=ret, where=alive)
         for p, blk in enumerate(blocks):
             if has_ref[p]:
-                own[k, blk] = policies[p].reference(obs[blk])
+                own_k[p][...] = policies[p].reference(obs[blk])
+                np.hypot(own_k[p][:, 0], own_k[p][:, 1], out=err_own[blk, k])
+                if trajectories:
+                    own[k, blk] = own_k[p]
         if trajectories:
             pose[k] = info["follower_pose"]
             target[k] = info["true_target"][:, :3]
             ref[k] = info["true_reference"][:, :2]
             force[k] = np.clip(actions, -1, 1) * limits
-        ended = alive & (term | trunc)
-        length[ended] = k + 1
-        terminated_any |= ended & term
-        alive &= ~ended
-        if not alive.any():
-            break
+        done = term | trunc
+        if done.any():
+            ended = alive & done
+            length[ended] = k + 1
+            terminated_any |= ended & term
+            alive &= ~ended
+            if not alive.any():
+                break
     venv.close()
+    nan = np.full(T, np.nan)
+    for p in range(P):
+        if not has_ref[p]:  # own reference NaN: its distance as _episode_outputs computes it
+            err_own[blocks[p]] = np.hypot(nan, nan)
+    # the metrics of the full-length episodes at once (row by row), the others one by one
+    times = spec.dt * np.arange(1, T + 1)
+    full = np.flatnonzero(length == T)
+    sel = slice(None) if full.size == n else full  # (a view if every episode ran to the end)
+    m_full = {int(i): m for i, m in zip(full, zip(_tracking_metrics_rows(err[sel], times, spec.steady_start_s),
+                                                   _tracking_metrics_rows(err_own[sel], times, spec.steady_start_s),
+                                                   strict=True), strict=True)}
     rows, trajs = [], []
     for p in range(P):
         for j, seed in enumerate(seeds):
             i = p * S + j
             L = int(length[i])
             per_step = (pose[:L, i], target[:L, i], ref[:L, i], force[:L, i]) if trajectories else ()
-            row, frame = _episode_outputs(spec, names[p], seed, terminated_any[i], ret[i], err[:L, i],
-                                          own[:L, i], *per_step)
+            row, frame = _episode_outputs(spec, names[p], seed, terminated_any[i], ret[i], err[i, :L],
+                                          own[:L, i] if trajectories else None, *per_step, err_own=err_own[i, :L],
+                                          metrics=m_full.get(i))
             rows.append(row)
             if trajectories:
                 trajs.append(frame)

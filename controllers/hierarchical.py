@@ -11,6 +11,16 @@ zero desired velocity. On v0 observations nothing of this applies (bit-identical
 Everything is computed in the follower's body frame with the follower at the origin and
 heading 0: the laws are equivariant under rotations and translations (K_p is a scalar
 gain), so this equals the paper's inertial-frame computation followed by R(psi)^T, eq. (27).
+
+Speed: :class:`HierarchicalController` (without estimator or disturbance observer) runs the
+law as three compiled passes over the batch (:func:`_predicted`, :func:`_reference_pass`,
+:func:`_law_pass`) between numpy's ``arctan2``/``cos``/``sin``, each cos/sin evaluated once
+per step, instead of the numpy composition of the functions below; the arithmetic is the
+same IEEE operations in the same order, so the results are bit-identical (tested against
+the composition; numba contracts nothing to FMA without fastmath). :meth:`reference` keeps
+its result for the observation it was given, and the next :meth:`forces` on a bit-identical
+observation reuses it (evaluation calls ``reference`` on the observation the next
+``predict`` sees).
 """
 
 from __future__ import annotations
@@ -18,8 +28,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
-from auv_follow_env.layout import decode
+from auv_follow_env.layout import LAYOUTS, OBS_DIM_V1, OBS_INDEX, OBS_INDEX_V1, decode
 from auv_follow_env.params import TaskSpec
 from controllers.base import FilteredDerivative, ScriptedPolicy, sat, wrap_to_pi
 from controllers.disturbance import DisturbanceObserver
@@ -135,6 +146,139 @@ def inner_loop(o: dict[str, np.ndarray], desired, desired_dot, nominal, gains: G
     return F_u, F_v, F_r
 
 
+# --- the compiled passes of HierarchicalController (same operations as the functions above) --
+_U, _V, _R = OBS_INDEX["u"], OBS_INDEX["v"], OBS_INDEX["r"]
+_DX, _DY = OBS_INDEX["target_dx"], OBS_INDEX["target_dy"]
+_COS, _SIN = OBS_INDEX["target_cos_dpsi"], OBS_INDEX["target_sin_dpsi"]
+_TU, _TV, _TR = OBS_INDEX["target_u"], OBS_INDEX["target_v"], OBS_INDEX["target_r"]
+_CU, _CV = OBS_INDEX["current_u"], OBS_INDEX["current_v"]
+_AGE, _HAS = OBS_INDEX_V1["packet_age"], OBS_INDEX_V1["has_packet"]
+
+
+@njit(cache=True)
+def _predicted(a, psi_d, c, s, enabled, tau, tau_col, x, y, psi):
+    """:func:`predict_target`'s position and heading into x, y, psi; ``c``, ``s`` = cos, sin of
+    ``psi_d``; tau is ``a[:, tau_col]`` if tau_col >= 0 (v1 packet age), else ``tau``."""
+    for i in range(a.shape[0]):
+        if enabled:
+            t = a[i, tau_col] if tau_col >= 0 else tau
+            u = a[i, _TU]
+            v = a[i, _TV]
+            vx = c[i] * u - s[i] * v
+            vy = s[i] * u + c[i] * v
+            x[i] = a[i, _DX] + vx * t
+            y[i] = a[i, _DY] + vy * t
+            psi[i] = psi_d[i] + a[i, _TR] * t
+        else:
+            x[i] = a[i, _DX]
+            y[i] = a[i, _DY]
+            psi[i] = psi_d[i]
+
+
+@njit(cache=True)
+def _reference_pass(a, x, y, psi, c, s, pdx, pdy, psi_off, hold_col, ref, neg):
+    """:func:`reference_point` (``c``, ``s`` = cos, sin of psi) into ref (N, 3), zero where
+    ``a[:, hold_col] < 0.5`` if hold_col >= 0 (:func:`no_packet_mask`); neg = -ref[:, 2]."""
+    for i in range(a.shape[0]):
+        ox = c[i] * pdx - s[i] * pdy
+        oy = s[i] * pdx + c[i] * pdy
+        xr = x[i] + ox
+        yr = y[i] + oy
+        pr = psi[i] + psi_off
+        if hold_col >= 0 and a[i, hold_col] < 0.5:
+            xr = 0.0
+            yr = 0.0
+            pr = 0.0
+        ref[i, 0] = xr
+        ref[i, 1] = yr
+        ref[i, 2] = pr
+        neg[i] = -pr
+
+
+@njit(cache=True, inline="always")
+def _sat(z):
+    """np.clip(z, -1, 1) (NaN stays NaN)."""
+    if z < -1.0:
+        return -1.0
+    if z > 1.0:
+        return 1.0
+    return z
+
+
+@njit(cache=True)
+def _law_pass(a, ref, c, s, e_psi, hold_col, pdx, pdy, gain, model, fa, fb, prev, d, reset, reset_all, F):
+    """:func:`outer_loop` (``c``, ``s`` = cos, sin of psi_hat; e_psi = wrap_to_pi(-psi_ref)),
+    zeroed where held, the filtered derivative (state prev, d; restarted where ``reset`` or
+    everywhere if ``reset_all``) and :func:`inner_loop` into F (N, 3).
+
+    gain = (-K_p, -K_psi, K_u, K_v, K_r, rho_u, rho_v, rho_r, phi_u, phi_v, phi_r),
+    model = (m, I_z, X_u, Y_v, N_r)."""
+    nkp, nkpsi, k_u, k_v, k_r = gain[0], gain[1], gain[2], gain[3], gain[4]
+    rho0, rho1, rho2, phi0, phi1, phi2 = gain[5], gain[6], gain[7], gain[8], gain[9], gain[10]
+    m, i_z, x_u, y_v, n_r = model[0], model[1], model[2], model[3], model[4]
+    for i in range(a.shape[0]):
+        u_hat = a[i, _TU]
+        v_hat = a[i, _TV]
+        r_hat = a[i, _TR]
+        e_x = -ref[i, 0]
+        e_y = -ref[i, 1]
+        fx = c[i] * u_hat - s[i] * v_hat
+        fy = s[i] * u_hat + c[i] * v_hat
+        ox = c[i] * pdx - s[i] * pdy
+        oy = s[i] * pdx + c[i] * pdy
+        vffx = fx - r_hat * oy
+        vffy = fy + r_hat * ox
+        u_d = nkp * e_x + vffx
+        v_d = nkp * e_y + vffy
+        r_d = nkpsi * e_psi[i] + r_hat
+        if hold_col >= 0 and a[i, hold_col] < 0.5:
+            u_d = 0.0
+            v_d = 0.0
+            r_d = 0.0
+        if reset_all or reset[i]:
+            prev[i, 0] = u_d
+            prev[i, 1] = v_d
+            prev[i, 2] = r_d
+            d[i, 0] = 0.0
+            d[i, 1] = 0.0
+            d[i, 2] = 0.0
+        ud_dot = fa * (u_d - prev[i, 0]) + fb * d[i, 0]
+        vd_dot = fa * (v_d - prev[i, 1]) + fb * d[i, 1]
+        rd_dot = fa * (r_d - prev[i, 2]) + fb * d[i, 2]
+        d[i, 0] = ud_dot
+        d[i, 1] = vd_dot
+        d[i, 2] = rd_dot
+        prev[i, 0] = u_d
+        prev[i, 1] = v_d
+        prev[i, 2] = r_d
+        u = a[i, _U]
+        v = a[i, _V]
+        r = a[i, _R]
+        e_u = u - u_d
+        e_v = v - v_d
+        e_r = r - r_d
+        u_r = u - a[i, _CU]
+        v_r = v - a[i, _CV]
+        F[i, 0] = m * ud_dot + x_u * u_r - m * v * r - k_u * e_u - rho0 * _sat(e_u / phi0)
+        F[i, 1] = m * vd_dot + y_v * v_r + m * u * r - k_v * e_v - rho1 * _sat(e_v / phi1)
+        F[i, 2] = i_z * rd_dot + n_r * r - k_r * e_r - rho2 * _sat(e_r / phi2)
+
+
+@njit(cache=True)
+def _same_bits(a, b):
+    """Whether two flat int64 arrays of one length hold the same bits."""
+    acc = 0
+    for i in range(a.size):
+        acc |= a[i] ^ b[i]
+    return acc == 0
+
+
+def _fusable(obs) -> bool:
+    """A 2-D float64 batch of a known layout (what the compiled passes read)."""
+    return (isinstance(obs, np.ndarray) and obs.ndim == 2 and obs.dtype == np.float64
+            and obs.shape[1] in LAYOUTS)
+
+
 class HierarchicalController(ScriptedPolicy):
     """The predictive robust tracking controller and its ablations (Table 1).
 
@@ -169,6 +313,59 @@ class HierarchicalController(ScriptedPolicy):
         self.estimator = estimator
         self.disturbance_observer = disturbance_observer
         self._diff = FilteredDerivative(spec.dt, self.gains.derivative_tc)
+        #: run the compiled passes where they apply (False: the numpy composition, as a reference)
+        self._fused = True
+        #: (observation key, prediction, spec, ref, cos psi_hat, sin psi_hat, -psi_ref) of the last reference()
+        self._cache: tuple | None = None
+
+    def _uses_fused(self, obs) -> bool:
+        return (self._fused and self.estimator is None and self.disturbance_observer is None and _fusable(obs)
+                and type(self)._generate is HierarchicalController._generate)
+
+    def _fused_reference(self, a: np.ndarray):
+        """(ref (N, 3), cos psi_hat, sin psi_hat, -psi_ref) of the batch ``a``: :meth:`_generate`
+        compiled, each libm function called once per env."""
+        n = a.shape[0]
+        v1 = a.shape[1] == OBS_DIM_V1
+        psi_d = np.arctan2(a[:, _SIN], a[:, _COS])
+        if self.prediction:
+            c, s = np.cos(psi_d), np.sin(psi_d)
+        else:
+            c = s = psi_d  # unused
+        x, y, psi = np.empty(n), np.empty(n), np.empty(n)
+        _predicted(a, psi_d, c, s, self.prediction, float(self.spec.delay_s), _AGE if v1 else -1, x, y, psi)
+        c, s = np.cos(psi), np.sin(psi)
+        ref, neg = np.empty((n, 3)), np.empty(n)
+        p_d = self.spec.p_d
+        _reference_pass(a, x, y, psi, c, s, float(p_d[0]), float(p_d[1]), float(self.spec.psi_d),
+                        _HAS if v1 else -1, ref, neg)
+        return ref, c, s, neg
+
+    def _cached_reference(self, a: np.ndarray):
+        """The last :meth:`reference`'s values if it was given the same bits (and settings)."""
+        c = self._cache
+        if (c is not None and c[1] == self.prediction and c[2] is self.spec and c[0].shape == a.shape
+                and _same_bits(c[0].view(np.int64).reshape(-1), a.view(np.int64).reshape(-1))):
+            return c[3:]
+        return None
+
+    def _fused_forces(self, obs: np.ndarray, reset_mask: np.ndarray) -> np.ndarray:
+        n = obs.shape[0]
+        cached = self._cached_reference(obs)
+        ref, c, s, neg = cached if cached is not None else self._fused_reference(obs)
+        e_psi = np.arctan2(np.sin(neg), np.cos(neg))  # wrap_to_pi(-psi_ref), eq. (24)
+        diff = self._diff
+        reset_all = diff.prev is None or diff.prev.shape != (n, 3)
+        if reset_all:
+            diff.prev, diff.d = np.empty((n, 3)), np.zeros((n, 3))
+        g, nom, p_d = self.gains, self.spec.nominal, self.spec.p_d
+        rho = g.rho if self.robust else (0.0, 0.0, 0.0)
+        gain = np.array([-g.K_p, -g.K_psi, g.K_u, g.K_v, g.K_r, *rho, *g.phi], dtype=np.float64)
+        model = np.array([nom.m, nom.I_z, nom.X_u, nom.Y_v, nom.N_r], dtype=np.float64)
+        F = np.empty((n, 3))
+        _law_pass(obs, ref, c, s, e_psi, _HAS if obs.shape[1] == OBS_DIM_V1 else -1, float(p_d[0]), float(p_d[1]),
+                  gain, model, diff.a, diff.b, diff.prev, diff.d, reset_mask, reset_all, F)
+        return F
 
     def _generate(self, o: dict[str, np.ndarray]):
         pred = predict_target(o, prediction_horizon(o, self.spec.delay_s), self.prediction)
@@ -188,11 +385,23 @@ class HierarchicalController(ScriptedPolicy):
         if self.estimator is not None:
             _, ref, _ = self._estimate(np.asarray(obs, dtype=np.float64), None, commit=False)
             return np.stack(ref, axis=-1)
+        a = np.asarray(obs, dtype=np.float64)
+        if self._uses_fused(a):
+            out = self._fused_reference(a)
+            key = a.copy() if np.may_share_memory(a, obs) else a  # a private copy of the bits
+            self._cache = (key, self.prediction, self.spec, *out)
+            return out[0].copy()
         o = decode(obs)
         _, ref = self._generate(o)
         return np.stack(ref, axis=-1)
 
     def forces(self, obs: np.ndarray, reset_mask: np.ndarray) -> np.ndarray:
+        if self._uses_fused(obs):
+            n, prev = obs.shape[0], self._diff.prev
+            mask_ok = isinstance(reset_mask, np.ndarray) and reset_mask.dtype == np.bool_ and reset_mask.shape == (n,)
+            if mask_ok and (prev is None or prev.shape == (n, 3) or reset_mask.any()):
+                return self._fused_forces(obs, reset_mask)
+            # (another mask type, or a batch of another size without a reset: the numpy composition)
         o = decode(obs)
         if self.estimator is None:
             pred, ref = self._generate(o)

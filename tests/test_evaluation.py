@@ -166,6 +166,42 @@ def test_evaluate_batched_equals_evaluate():
                                    err_msg=col)
 
 
+def _bits(x) -> np.ndarray:
+    return np.asarray(x, dtype=np.float64).view(np.int64)
+
+
+@pytest.mark.parametrize("T", [1, 5, 81, 160, 240, 1200, 1201])
+def test_batched_metric_rows_equal_tracking_metrics_bit_for_bit(T):
+    from controllers.evaluation import _tracking_metrics_rows
+
+    rng = np.random.default_rng(T)
+    e = rng.uniform(0.0, 1.0, (T, 7 if T > 240 else 150)) ** 3  # stored (T, m): rows are strided views
+    e[T // 2, 3] = np.nan
+    times = 0.05 * np.arange(1, T + 1)
+    for steady in (0.0, 4.0, 10.0, 1e9):
+        rows = _tracking_metrics_rows(e.T, times, steady)
+        for i, row in enumerate(rows):
+            ref = tracking_metrics(np.ascontiguousarray(e[:, i]), times, steady)
+            assert list(row) == list(ref)
+            np.testing.assert_array_equal(_bits(list(row.values())), _bits(list(ref.values())), err_msg=f"row {i}")
+
+
+def test_evaluate_batched_metrics_are_those_of_its_trajectories_bit_for_bit():
+    # full-length episodes (computed at once) and early ends (ZeroPolicy drifts off: one by one)
+    spec = auv_follow_env.make_task_spec("S4")
+    m, t = evaluate_batched([make_controller("PROPOSED", spec), ZeroPolicy()], "AUVFollow-S4-v0", seeds=[0, 1],
+                            trajectories=True, progress=False)
+    assert m["steps"].iloc[0] == spec.n_steps and m["steps"].iloc[-1] < spec.n_steps
+    for (policy, seed), frame in t.groupby(["policy", "seed"], sort=False):
+        row = m[(m["policy"] == policy) & (m["seed"] == seed)].iloc[0]
+        times = frame["time"].to_numpy()
+        for ref, col in (("true", "err_true"), ("own", "err_own")):
+            expected = tracking_metrics(frame[col].to_numpy(), times, spec.steady_start_s)
+            got = [row[f"{ref}_{k}"] for k in METRIC_KEYS]
+            np.testing.assert_array_equal(_bits(got), _bits([expected[k] for k in METRIC_KEYS]),
+                                          err_msg=f"{policy} {seed} {ref}")
+
+
 # --------------------------------------------------------------------------------------------
 # paper-level behaviour: without prediction the follower lags the TRUE reference by v_t tau
 

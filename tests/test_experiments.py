@@ -270,6 +270,18 @@ def test_bench_vector_smoke(tmp_path):
         assert needle in text
 
 
+def test_bench_policy_smoke(tmp_path):
+    # a few envs, a short episode: the three parts and the split of evaluate_batched are reported
+    from experiments import bench_policy
+
+    out = tmp_path / "bench_policy.md"
+    text = bench_policy.main(["--n", "16", "--episode-s", "0.5", "--repeats", "1", "--out", str(out)])
+    assert out.read_text() == text
+    for needle in ("(a) vector env alone", "(b) PROPOSED `predict` alone", "(c) `evaluate_batched`",
+                   "| `reference` (own-reference metric) |", "ns per env-step", "load average"):
+        assert needle in text
+
+
 def test_bench_vector_op_count_matches_the_kernel_structure():
     from experiments.bench_vector import op_count
 
