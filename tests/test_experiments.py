@@ -289,3 +289,14 @@ def test_bench_vector_op_count_matches_the_kernel_structure():
     assert ops["kernel"]["libm"] == 28 and ops["step"]["libm"] == 30  # 20 tone values + 4 per substep; cached
     assert ops["kernel"]["divisions"] < ops["kernel"]["flops"]
     assert op_count(3)["kernel"]["flops"] > ops["kernel"]["flops"]
+
+
+def test_bench_ab_refuses_an_unknown_baseline_and_bad_sizes(capsys):
+    from experiments import bench_ab
+
+    with pytest.raises(SystemExit) as err:
+        bench_ab.main(["--baseline", "no-such-revision-xyz"])
+    assert err.value.code == 2
+    assert "no-such-revision-xyz" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        bench_ab.main(["--baseline", "HEAD", "--sizes", "-1"])
