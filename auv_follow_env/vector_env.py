@@ -8,6 +8,7 @@ reset with ``seed=s + i`` and then reset without a seed after each of its episod
 
 from __future__ import annotations
 
+import math
 import os
 from typing import Any
 
@@ -44,16 +45,30 @@ def _num_threads() -> int:
     return int(numba.config.NUMBA_NUM_THREADS)
 
 
-def _sleeping_omp_threads() -> None:
-    """Let idle OpenMP worker threads sleep instead of spin (``OMP_WAIT_POLICY=PASSIVE``,
-    unless the variable is set already): between two steps the workers of numba's OpenMP
-    layer otherwise spin for CPU time that the stepping thread needs, and on a machine
-    shared with other processes a threaded step then ran up to 30x slower than a serial one
-    (measured here at load 7 on 2 cores). The cost is one wake-up (microseconds) per step.
-    Read when the OpenMP runtime loads, i.e. at the first threaded step of the process."""
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+def omp_wait_policy(load: float | None = None, cpus: int | None = None) -> str | None:
+    """Choose how idle OpenMP workers wait, once, at the first threaded step of the process
+    (the OpenMP runtime reads ``OMP_WAIT_POLICY`` when it loads); returns what it set.
 
-
+    Nothing is changed if ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` is set already. Otherwise:
+    on a busy machine (1-min load average >= CPUs - 0.5, i.e. no core to spare) workers
+    sleep (``PASSIVE``): spinning workers then take CPU time the stepping thread needs, and
+    threaded steps ran 1.5-2x slower than serial ones with five busy processes on 2 cores.
+    With a core free, libgomp's default (spin briefly, then sleep) is kept: a sleeping worker
+    costs a wake-up per step, and in this virtual machine that made the threaded step about
+    35 % slower (results/bench_vector.md, docs of ``parallel``).
+    """
+    if "OMP_WAIT_POLICY" in os.environ or "GOMP_SPINCOUNT" in os.environ:
+        return None
+    if load is None:
+        try:
+            load = os.getloadavg()[0]
+        except OSError:  # no load average on this platform: be cautious
+            load = math.inf
+    cpus = cpus if cpus is not None else (os.cpu_count() or 1)
+    if load >= cpus - 0.5:
+        os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+        return "PASSIVE"
+    return None
 
 
 def _is_seed(s: object) -> bool:
@@ -139,10 +154,11 @@ class AUVFollowVectorEnv(VectorEnv):
     slices of the batch in a ``prange`` loop, the same per-env code), so the results are
     bit-identical either way; the speed-up is at most the number of free cores. The threaded
     kernel is compiled on its first use and then cached on disk like the others;
-    ``NUMBA_NUM_THREADS`` sets the thread count. Choosing the threads sets
-    ``OMP_WAIT_POLICY=PASSIVE`` in the process environment unless it is set (idle OpenMP
-    workers sleep rather than spin: spinning workers slowed threaded steps many times over
-    on a shared machine).
+    ``NUMBA_NUM_THREADS`` sets the thread count. Choosing the threads may set
+    ``OMP_WAIT_POLICY=PASSIVE`` in the process environment, if neither it nor
+    ``GOMP_SPINCOUNT`` is set and the machine is busy then (:func:`omp_wait_policy`): idle
+    OpenMP workers sleep rather than spin when no core is free, and spin briefly (libgomp's
+    default) when one is.
     ``fast_math`` (default ``False``): see :class:`~auv_follow_env.env.AUVFollowEnv`.
     """
 
@@ -187,7 +203,7 @@ class AUVFollowVectorEnv(VectorEnv):
             chunks = min(4 * threads, self.num_envs // _MIN_CHUNK)
             if chunks >= 2:
                 self._parallel = (dyn.step_kernel_parallel, chunks)
-                _sleeping_omp_threads()
+                omp_wait_policy()
         #: whether steps run on numba's threads (the resolved ``parallel`` argument)
         self.parallel = self._parallel is not None
         self._n_steps = n_steps

@@ -367,3 +367,21 @@ def test_parallel_kernel_is_cached_on_disk(tmp_path):
     (hits2, misses2), files2 = run()
     assert hits2 >= 1 and misses2 == 0
     assert files1 and files2 == files1
+
+
+def test_omp_wait_policy_sleeps_only_on_a_busy_machine(monkeypatch):
+    from auv_follow_env.vector_env import omp_wait_policy
+
+    for var in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT"):  # recorded first, so teardown restores them
+        monkeypatch.setenv(var, "x")
+        monkeypatch.delenv(var)
+    assert omp_wait_policy(load=0.9, cpus=2) is None  # a core to spare: libgomp's default
+    assert "OMP_WAIT_POLICY" not in __import__("os").environ
+    assert omp_wait_policy(load=1.5, cpus=2) == "PASSIVE"  # no core to spare
+    assert __import__("os").environ["OMP_WAIT_POLICY"] == "PASSIVE"
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")  # the user's choice wins
+    assert omp_wait_policy(load=9.0, cpus=2) is None
+    assert __import__("os").environ["OMP_WAIT_POLICY"] == "ACTIVE"
+    monkeypatch.delenv("OMP_WAIT_POLICY")
+    monkeypatch.setenv("GOMP_SPINCOUNT", "1000")
+    assert omp_wait_policy(load=9.0, cpus=2) is None
