@@ -380,7 +380,10 @@ def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after:
              f"{gym.__version__}; {args.budget} s per cell after a warm-up step, best of {args.repeats} "
              f"interleaved repeats; load average (1, 5, 15 min) before the run {load}, after it {load_after} "
              f"(other processes share the cores: every figure is a lower bound of what an idle machine gives); "
-             f"parallel=True columns on {threads} numba threads.", "",
+             f"parallel=True columns on {threads} numba threads, OpenMP wait policy "
+             f"{os.environ.get('OMP_WAIT_POLICY', 'libgomp default (brief spin)')} "
+             f"(auv_follow_env.vector_env.omp_wait_policy: PASSIVE when the machine was busy at the first threaded "
+             f"step).", "",
              "| N | " + " | ".join(COLUMNS.values()) + " | native us/env-step |",
              "|---|" + "---|" * (len(COLUMNS) + 1)]
     for n, row in rows.items():
