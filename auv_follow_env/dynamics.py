@@ -438,6 +438,23 @@ def _sincos_rows(wk, src, sin_row, cos_row, m, fast):
             wk[_ix(cos_row, b)] = math.cos(x)
 
 
+@njit(cache=True, inline="always")
+def _tone_values(wk, m, fast):
+    """sin/cos of the ten tones at each lane's time (row K_T0) into rows K_S.., K_C.. (the
+    rotation rows K_RC.. hold the arguments meanwhile)."""
+    for j in range(10):
+        for b in range(m):
+            wk[_ix(K_RC + j, b)] = wk[_ix(K_OM + j, b)] * wk[_ix(K_T0, b)] + wk[_ix(K_PH + j, b)]
+        _sincos_rows(wk, K_RC + j, K_S + j, K_C + j, m, fast)
+
+
+@njit(cache=True, inline="always")
+def _heading_values(wk, m, fast):
+    """cos/sin of both headings (state rows K_ST + 2, K_ST + 8) into rows K_C0, K_S0, K_CT, K_STT."""
+    _sincos_rows(wk, K_ST + 2, K_S0, K_C0, m, fast)
+    _sincos_rows(wk, K_ST + 8, K_STT, K_CT, m, fast)
+
+
 @njit(cache=True, error_model="numpy")
 def gather_block(state, p, a, m, wk):
     """Copy envs a..a+m-1 of state (N, 9) and params (N, NP) into the block's rows."""
@@ -520,10 +537,8 @@ def advance_block(wk, dt, nsub, m, pre, fast=False):
     """
     h = dt / nsub
     hh = 0.5 * h
-    for j in range(0 if pre else 10):  # (the rotation rows K_RC.. are free here: arguments)
-        for b in range(m):
-            wk[_ix(K_RC + j, b)] = wk[_ix(K_OM + j, b)] * wk[_ix(K_T0, b)] + wk[_ix(K_PH + j, b)]
-        _sincos_rows(wk, K_RC + j, K_S + j, K_C + j, m, fast)
+    if not pre:
+        _tone_values(wk, m, fast)  # (before the rotation rows K_RC.. are filled below)
     nbig = 0
     for j in range(10):
         for b in range(m):
@@ -555,8 +570,7 @@ def advance_block(wk, dt, nsub, m, pre, fast=False):
             for b in range(m):
                 _forcing_lane(wk, K_S, row, b)
         if not (pre and sub == 0):  # cos/sin of both headings at the substep's start
-            _sincos_rows(wk, K_ST + 2, K_S0, K_C0, m, fast)
-            _sincos_rows(wk, K_ST + 8, K_STT, K_CT, m, fast)
+            _heading_values(wk, m, fast)
         nbig = 0
         for b in range(m):
             out, big = _rk4_block_lane(wk, h, b, False)
@@ -679,12 +693,8 @@ def refresh_trig_block(k, proc, cfg, a, m, wk, fast):
     dt = cfg[C_DT]
     for b in range(m):
         wk[_ix(K_T0, b)] = k[a + b] * dt
-    for j in range(10):  # the rotation rows K_RC.. are free after advance_block: arguments
-        for b in range(m):
-            wk[_ix(K_RC + j, b)] = wk[_ix(K_OM + j, b)] * wk[_ix(K_T0, b)] + wk[_ix(K_PH + j, b)]
-        _sincos_rows(wk, K_RC + j, K_S + j, K_C + j, m, fast)
-    _sincos_rows(wk, K_ST + 2, K_S0, K_C0, m, fast)
-    _sincos_rows(wk, K_ST + 8, K_STT, K_CT, m, fast)
+    _tone_values(wk, m, fast)  # (the rotation rows are free after advance_block)
+    _heading_values(wk, m, fast)
     for b in range(m):
         i = a + b
         for j in range(10):
