@@ -19,6 +19,7 @@ __all__ = ["AUVFollowEnv", "check_action"]
 
 _IDX0 = np.zeros(1, dtype=np.int64)
 _FAST_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+_SHAPE3 = (3,)
 
 
 def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
@@ -219,8 +220,11 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         #: whether the step's sin/cos are the SIMD polynomial (``fast_math=True``) instead of libm
         self.fast_math = fast_math
         self._step_one, self._buf = self._sim.step_one_call()
-        self._obs0 = self._sim.obs[0]  # views of the sim's arrays (copied into each step's output)
-        self._truth0 = self._sim.truth[0]
+        # views of the sim's arrays, copied into each step's output
+        self._obs0 = self._sim.obs[0]
+        self._true_target = self._sim.truth[0, dyn.T_TARGET]
+        self._true_reference = self._sim.truth[0, dyn.T_REF]
+        self._follower_pose = self._sim.truth[0, dyn.T_FOLLOWER]
         self._dt = self.config.dt
         self._n_steps = self.config.n_steps
         self._started = False
@@ -252,16 +256,15 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
     def step(self, action: Any):
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        if type(action) is not np.ndarray or action.shape != (3,) or action.dtype not in _FAST_DTYPES \
+        if action.__class__ is not np.ndarray or action.dtype not in _FAST_DTYPES or action.shape != _SHAPE3 \
                 or not action.flags.c_contiguous:
             action = check_action(action, (3,))
         # the kernel returns the step's scalars (rew[0], term[0], k[0], truth[0, T_ERR])
         bad, reward, terminated, k, err = self._step_one(self._buf, action)
         if bad >= 0:
             raise ValueError(f"action={action.tolist()} contains NaN or inf: the env was not changed")
-        truth = self._truth0.copy()
-        info = {"tracking_error": err, "time": k * self._dt, "true_target": truth[3:9],
-                "true_reference": truth[9:12], "follower_pose": truth[0:3]}
+        info = {"tracking_error": err, "time": k * self._dt, "true_target": self._true_target.copy(),
+                "true_reference": self._true_reference.copy(), "follower_pose": self._follower_pose.copy()}
         if terminated or k == self._n_steps:
             sim = self._sim
             info["episode_metrics"] = tracking_metrics(*sim.errors(0), self.config.steady_start_s)

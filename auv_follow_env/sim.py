@@ -108,24 +108,32 @@ def params_from_uniforms(config: EnvConfig, u: np.ndarray, *, vehicle: VehiclePa
     speed, surge_amp, yaw_amp = (tp.speed, tp.surge_amp, tp.yaw_rate_amp) if target is None else target
     cur_x, cur_y = (lvl.current_x, lvl.current_y) if current is None else current
     lo, hi = CURRENT_PERIOD_RANGE
-    rows = np.repeat(param_row(vehicle=veh, target_speed=speed, surge_amp=surge_amp, surge_period=tp.surge_period,
-                               yaw_rate_amp=yaw_amp, yaw_period=tp.yaw_period,
-                               latency_steps=config.delay_steps)[None, :], u.shape[0], axis=0)
-    rows[:, dyn.P_TPU] = TWO_PI * u[:, 0]
-    rows[:, dyn.P_TPR] = TWO_PI * u[:, 1]
+    base = param_row(vehicle=veh, target_speed=speed, surge_amp=surge_amp, surge_period=tp.surge_period,
+                     yaw_rate_amp=yaw_amp, yaw_period=tp.yaw_period, latency_steps=config.delay_steps)
+    n = u.shape[0]
+    # the uniforms' columns as (n,) arrays, or as floats for one row: the same IEEE double
+    # operations give the same values, with a fraction of the numpy calls (the single env's reset)
+    us = u[0].tolist() if n == 1 else list(u.T)
+    vals = {dyn.P_TPU: TWO_PI * us[0], dyn.P_TPR: TWO_PI * us[1]}
     for col, (a, b), j in ((dyn.P_CX, cur_x, 2), (dyn.P_CY, cur_y, 4)):
-        rows[:, col] = 0.5 * (a + b)
-        rows[:, col + 1] = 0.5 * (b - a)
-        rows[:, col + 2] = TWO_PI / (lo + (hi - lo) * u[:, j])
-        rows[:, col + 3] = TWO_PI * u[:, j + 1]
+        vals[col] = 0.5 * (a + b)
+        vals[col + 1] = 0.5 * (b - a)
+        vals[col + 2] = TWO_PI / (lo + (hi - lo) * us[j])
+        vals[col + 3] = TWO_PI * us[j + 1]
     scale = (veh.m, veh.m, veh.I_z)  # Table 3 peaks read per unit mass (docs/paper_notes.md)
     w1, w2 = dyn.DIST_WEIGHT
     for c, (pk, sc) in enumerate(zip(lvl.peaks, scale, strict=True)):
         col = dyn.P_D + 4 * c
-        rows[:, col] = w1 * pk * sc
-        rows[:, col + 1] = TWO_PI * u[:, 6 + 2 * c]
-        rows[:, col + 2] = w2 * pk * sc
-        rows[:, col + 3] = TWO_PI * u[:, 7 + 2 * c]
+        vals[col] = w1 * pk * sc
+        vals[col + 1] = TWO_PI * us[6 + 2 * c]
+        vals[col + 2] = w2 * pk * sc
+        vals[col + 3] = TWO_PI * us[7 + 2 * c]
+    if n == 1:
+        base[list(vals)] = list(vals.values())
+        return base[None, :]
+    rows = np.repeat(base[None, :], n, axis=0)
+    for col, v in vals.items():
+        rows[:, col] = v
     return rows
 
 
