@@ -5,9 +5,13 @@ At N = 1 numba's dispatch of the thirteen arrays of :func:`~auv_follow_env.dynam
 costs about as much as the physics (each array argument is unboxed separately). Here all the
 arrays of a one-env :class:`~auv_follow_env.sim.BatchSim` are views of one float64 buffer
 (:func:`packed_arrays`); :func:`step_one` takes that buffer and the action, rebuilds the same
-views inside numba (the same array types, so the very same ``step_range`` code runs: results are
-bit-identical to the vector env's, by construction and by tests/test_kernel_one.py) and returns
-the step's scalars, so the Python shell reads no numpy scalars.
+views inside numba (the same array types) and returns the step's scalars, so the Python shell
+reads no numpy scalars. The step itself is ``step_range``'s own code (not a copy of its source:
+a second dispatcher of the same Python function) whose block functions ``advance_block`` and
+``gather_block`` are called with the lane count as the literal 1, so numba compiles them for a
+block of one lane, where every loop over lanes is a single iteration known at compile time.
+Same operations in the same order: results are bit-identical to the vector env's
+(tests/test_kernel_one.py compares every array after every step).
 
 Buffer layout (float64 slots): a header (queue capacity, observation length, history length),
 then cfg, state, k (int64), rs (uint64), proc, params, truth, rew, term (bool), obs (float32,
@@ -17,6 +21,7 @@ up to 20), queue, err_hist.
 from __future__ import annotations
 
 import hashlib
+import types as pytypes
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +107,40 @@ def _views(buf):
             carray(_address(buf, O_REW), 1, f8), carray(_address(buf, O_TERM), 1, np.bool_))
 
 
+@njit(inline="always")
+def _advance_one(wk, dt, nsub, m, pre, fast=False):
+    """:func:`~auv_follow_env.dynamics.advance_block` of a one-lane block, with the lane count a
+    compile-time constant (numba compiles a specialisation for the literal 1, where every loop
+    over lanes is one iteration known at compile time)."""
+    if m != 1:
+        raise AssertionError("kernel_one: a block of one env expected")
+    dyn.advance_block(wk, dt, nsub, 1, pre, fast)
+
+
+@njit(inline="always")
+def _gather_one(state, p, a, m, wk):
+    """:func:`~auv_follow_env.dynamics.gather_block` of one env (the lane count a constant)."""
+    if m != 1:
+        raise AssertionError("kernel_one: a block of one env expected")
+    dyn.gather_block(state, p, a, 1, wk)
+
+
+def _rebound(disp, **subs):
+    """A new dispatcher compiled from ``disp``'s own Python function (the same code object), with
+    the globals ``subs`` replaced."""
+    f = disp.py_func
+    glb = {**f.__globals__, **subs}
+    fn = pytypes.FunctionType(f.__code__, glb, f.__name__, f.__defaults__, f.__closure__)
+    fn.__qualname__ = f"{f.__qualname__}_one"
+    fn.__doc__ = f.__doc__
+    opts = {k: v for k, v in disp.targetoptions.items() if k != "nopython"}
+    return njit(**{**opts, "cache": False})(fn)
+
+
+#: dynamics.step_range, the same code, calling the one-lane block functions
+_step_range_one = _rebound(dyn.step_range, advance_block=_advance_one, gather_block=_gather_one)
+
+
 def _build():
     # numba's on-disk cache is keyed on this file only, but step_one compiles dynamics' code into
     # itself: the hash of dynamics.py, a closure variable, is part of the cache key, so an edit
@@ -122,7 +161,7 @@ def _build():
         bad = dyn.first_bad_action(action)
         if bad >= 0:
             return bad, 0.0, False, 0, 0.0
-        dyn.step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, 0, 1)
+        _step_range_one(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, 0, 1)
         return -1, rew[0], term[0], k[0], truth[0, dyn.T_ERR]
 
     return njit(cache=True)(step_one)
