@@ -167,3 +167,14 @@ def test_single_env_is_packed():
     env = gym.make("AUVFollow-S4-v0").unwrapped
     assert env._sim.buf is not None and np.shares_memory(env._sim.state, env._sim.buf)
     assert auv_follow_env.kernel_one.step_one is step_one
+
+
+def test_the_cache_key_follows_dynamics_py():
+    # numba keys a cached kernel on its own file and its closure variables: step_one compiles
+    # dynamics' code into itself, so dynamics.py's hash must be among them (else an edit there
+    # would leave a stale step_one in the on-disk cache)
+    import hashlib
+    from pathlib import Path
+
+    digest = hashlib.sha256(Path(dyn.__file__).read_bytes()).hexdigest()
+    assert digest in [c.cell_contents for c in step_one.py_func.__closure__]
