@@ -9,6 +9,7 @@ format output.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -106,26 +107,42 @@ def params_from_uniforms(config: EnvConfig, u: np.ndarray, *, vehicle: VehiclePa
     veh = config.true_vehicle if vehicle is None else vehicle
     speed, surge_amp, yaw_amp = (tp.speed, tp.surge_amp, tp.yaw_rate_amp) if target is None else target
     cur_x, cur_y = (lvl.current_x, lvl.current_y) if current is None else current
+    base = _base_row(veh, float(speed), float(surge_amp), float(tp.surge_period), float(yaw_amp),
+                     float(tp.yaw_period), config.delay_steps, tuple(cur_x), tuple(cur_y), tuple(lvl.peaks))
+    rows = np.empty((u.shape[0], dyn.NP))
+    rows[:] = base
     lo, hi = CURRENT_PERIOD_RANGE
-    rows = np.repeat(param_row(vehicle=veh, target_speed=speed, surge_amp=surge_amp, surge_period=tp.surge_period,
-                               yaw_rate_amp=yaw_amp, yaw_period=tp.yaw_period,
-                               latency_steps=config.delay_steps)[None, :], u.shape[0], axis=0)
-    rows[:, dyn.P_TPU] = TWO_PI * u[:, 0]
-    rows[:, dyn.P_TPR] = TWO_PI * u[:, 1]
-    for col, (a, b), j in ((dyn.P_CX, cur_x, 2), (dyn.P_CY, cur_y, 4)):
-        rows[:, col] = 0.5 * (a + b)
-        rows[:, col + 1] = 0.5 * (b - a)
-        rows[:, col + 2] = TWO_PI / (lo + (hi - lo) * u[:, j])
-        rows[:, col + 3] = TWO_PI * u[:, j + 1]
+    rows[:, _PHASE_COLS] = TWO_PI * u[:, _PHASE_U]
+    rows[:, _PERIOD_COLS] = TWO_PI / (lo + (hi - lo) * u[:, _PERIOD_U])
+    return rows
+
+
+#: the param columns set from the 12 uniforms: phases (2 pi u) and the current's two tone
+#: frequencies (2 pi / period, the period uniform in CURRENT_PERIOD_RANGE), with the uniforms' index
+_PHASE_COLS = [dyn.P_TPU, dyn.P_TPR, dyn.P_CX + 3, dyn.P_CY + 3] + [dyn.P_D + 4 * c + k for c in range(3)
+                                                                  for k in (1, 3)]
+_PHASE_U = [0, 1, 3, 5, 6, 7, 8, 9, 10, 11]
+_PERIOD_COLS = [dyn.P_CX + 2, dyn.P_CY + 2]
+_PERIOD_U = [2, 4]
+
+
+@functools.lru_cache(maxsize=256)
+def _base_row(veh: VehicleParams, speed: float, surge_amp: float, surge_period: float, yaw_amp: float,
+              yaw_period: float, delay_steps: int, cur_x: tuple, cur_y: tuple, peaks: tuple) -> np.ndarray:
+    """The part of a v0 param row that does not depend on the uniforms (read-only, cached:
+    a reset of a few envs would otherwise spend most of its time rebuilding it)."""
+    row = param_row(vehicle=veh, target_speed=speed, surge_amp=surge_amp, surge_period=surge_period,
+                    yaw_rate_amp=yaw_amp, yaw_period=yaw_period, latency_steps=delay_steps)
+    for col, (a, b) in ((dyn.P_CX, cur_x), (dyn.P_CY, cur_y)):
+        row[col] = 0.5 * (a + b)
+        row[col + 1] = 0.5 * (b - a)
     scale = (veh.m, veh.m, veh.I_z)  # Table 3 peaks read per unit mass (docs/paper_notes.md)
     w1, w2 = dyn.DIST_WEIGHT
-    for c, (pk, sc) in enumerate(zip(lvl.peaks, scale, strict=True)):
-        col = dyn.P_D + 4 * c
-        rows[:, col] = w1 * pk * sc
-        rows[:, col + 1] = TWO_PI * u[:, 6 + 2 * c]
-        rows[:, col + 2] = w2 * pk * sc
-        rows[:, col + 3] = TWO_PI * u[:, 7 + 2 * c]
-    return rows
+    for c, (pk, sc) in enumerate(zip(peaks, scale, strict=True)):
+        row[dyn.P_D + 4 * c] = w1 * pk * sc
+        row[dyn.P_D + 4 * c + 2] = w2 * pk * sc
+    row.flags.writeable = False
+    return row
 
 
 def sample_params_v1(config: EnvConfig, rng: np.random.Generator) -> tuple[np.ndarray, int, float, dict]:
