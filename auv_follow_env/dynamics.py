@@ -150,18 +150,24 @@ def uniform01(rs, i):
 
 
 @njit(cache=True)
-def normal01(rs, proc, i):
-    """A standard normal deviate (Box-Muller; the pair's second value is cached in proc)."""
+def normal01(rs, proc, i, fast=False):
+    """A standard normal deviate (Box-Muller; the pair's second value is cached in proc).
+    ``fast`` (fast_math): the angle's sin/cos by :func:`fast_sincos` (the log stays libm)."""
     if proc[i, R_GAUSS_HAS] != 0.0:
         proc[i, R_GAUSS_HAS] = 0.0
         return proc[i, R_GAUSS]
     u1 = 1.0 - uniform01(rs, i)  # (0, 1]
     u2 = uniform01(rs, i)
     rad = math.sqrt(-2.0 * math.log(u1))
-    a = 2.0 * math.pi * u2
-    proc[i, R_GAUSS] = rad * math.sin(a)
+    a = 2.0 * math.pi * u2  # in [0, 2 pi): within fast_sincos' range
+    if fast:
+        sa, ca = fast_sincos(a)
+    else:
+        sa = math.sin(a)
+        ca = math.cos(a)
+    proc[i, R_GAUSS] = rad * sa
     proc[i, R_GAUSS_HAS] = 1.0
-    return rad * math.cos(a)
+    return rad * ca
 
 
 @njit(cache=True)
@@ -174,11 +180,11 @@ def draw_uniforms(rs, n):
 
 
 @njit(cache=True)
-def draw_normals(rs, proc, n):
-    """``n`` standard normals from env 0's generator (for tests)."""
+def draw_normals(rs, proc, n, fast=False):
+    """``n`` standard normals from env 0's generator (for tests; ``fast``: as with fast_math)."""
     out = np.empty(n)
     for j in range(n):
-        out[j] = normal01(rs, proc, 0)
+        out[j] = normal01(rs, proc, 0, fast)
     return out
 
 
@@ -623,37 +629,44 @@ def _load_random_forcing(proc, i, wk, b):
 
 
 @njit(cache=True)
-def _gm(x, a, std, rs, proc, i):
+def _gm(x, a, std, rs, proc, i, fast=False):
     """One exact step of a stationary Gauss-Markov (OU) process with per-step decay a."""
-    return a * x + math.sqrt(1.0 - a * a) * std * normal01(rs, proc, i)
+    return a * x + math.sqrt(1.0 - a * a) * std * normal01(rs, proc, i, fast)
 
 
 @njit(cache=True, inline="always")
-def update_processes(proc, rs, p, i):
-    """Advance env i's random processes by one control step (draws only where a std > 0)."""
+def update_processes(proc, rs, p, i, fast=False):
+    """Advance env i's random processes by one control step (draws only where a std > 0).
+    ``fast`` (fast_math): the normals' and the current's sin/cos by :func:`fast_sincos`."""
     if p[i, P_OUU_STD] > 0.0:
-        proc[i, R_OUU] = _gm(proc[i, R_OUU], p[i, P_OUU_A], p[i, P_OUU_STD], rs, proc, i)
+        proc[i, R_OUU] = _gm(proc[i, R_OUU], p[i, P_OUU_A], p[i, P_OUU_STD], rs, proc, i, fast)
     if p[i, P_OUR_STD] > 0.0:
-        proc[i, R_OUR] = _gm(proc[i, R_OUR], p[i, P_OUR_A], p[i, P_OUR_STD], rs, proc, i)
+        proc[i, R_OUR] = _gm(proc[i, R_OUR], p[i, P_OUR_A], p[i, P_OUR_STD], rs, proc, i, fast)
     moved = False
     if p[i, P_CS_STD] > 0.0:
-        proc[i, R_CSX] = _gm(proc[i, R_CSX], p[i, P_CS_A], p[i, P_CS_STD], rs, proc, i)
+        proc[i, R_CSX] = _gm(proc[i, R_CSX], p[i, P_CS_A], p[i, P_CS_STD], rs, proc, i, fast)
         moved = True
     if p[i, P_CD_STEP] > 0.0:
-        proc[i, R_CDIR] += p[i, P_CD_STEP] * normal01(rs, proc, i)
+        proc[i, R_CDIR] += p[i, P_CD_STEP] * normal01(rs, proc, i, fast)
         moved = True
     if moved:
-        _current_vector(proc, p, i)
+        _current_vector(proc, p, i, fast)
     for c in range(3):
         if p[i, P_DN + c] > 0.0:
-            proc[i, R_DN + c] = _gm(proc[i, R_DN + c], p[i, P_DN_A], p[i, P_DN + c], rs, proc, i)
+            proc[i, R_DN + c] = _gm(proc[i, R_DN + c], p[i, P_DN_A], p[i, P_DN + c], rs, proc, i, fast)
 
 
 @njit(cache=True)
-def _current_vector(proc, p, i):
+def _current_vector(proc, p, i, fast=False):
     sp = max(0.0, p[i, P_CS_MEAN] + proc[i, R_CSX])
-    proc[i, R_CGX] = sp * math.cos(proc[i, R_CDIR])
-    proc[i, R_CGY] = sp * math.sin(proc[i, R_CDIR])
+    d = proc[i, R_CDIR]  # (a random walk: |d| can exceed fast_sincos' range only after ~1e10 steps)
+    if fast and abs(d) <= FAST_TRIG_MAX:
+        s, c = fast_sincos(d)
+    else:
+        c = math.cos(d)
+        s = math.sin(d)
+    proc[i, R_CGX] = sp * c
+    proc[i, R_CGY] = sp * s
 
 
 @njit(cache=True, inline="always")
@@ -1090,7 +1103,7 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, ter
             for c in range(9):
                 state[i, c] = wk[_ix(K_ST + c, b)]
             k[i] += 1
-            update_processes(proc, rs, p, i)
+            update_processes(proc, rs, p, i, fast)
         refresh_trig_block(k, proc, cfg, a, m, wk, fast)  # the new step's libm values, used from here on
         for b in range(m):
             i = a + b
