@@ -30,6 +30,10 @@ Array conventions (documented column maps below):
 * ``rs``     (N,) uint64: each env's SplitMix64 generator state (seeded from the env's numpy
   generator at reset; v0 settings draw nothing from it);
 * ``params`` (N, NP) float64: per-episode plant/target/current/disturbance/link parameters;
+* ``err_hist`` (N, S) float64: each env's tracking-error samples of its episode (row i, sample
+  k - 1 after step k), written 8 at a time from the staging columns R_ESTAGE.. of ``proc``, and
+  at once when the episode ends (termination or k = n_steps): :func:`error_samples` reads
+  them at any time;
 * ``cfg``    (NC,) float64: static configuration shared by the batch.
 
 The target link (one code path for v0 and v1). At every send time the target's present
@@ -111,7 +115,10 @@ R_TS, R_TC = 36, 46  # tone sines (36-45) and cosines (46-55) at t = R_TK * dt
 R_PSK, R_PSC, R_PSS = 56, 57, 58  # follower heading, its cos, its sin
 R_PTK, R_PTC, R_PTS = 59, 60, 61  # target heading, its cos, its sin
 R_HC, R_HS = 62, 63  # cos/sin of the held packet's heading
-NR = 64
+# the episode's last error samples, staged in the env's own row (hot in cache) and written to
+# err_hist 8 at a time (one cache line); sample k - 1 sits in column R_ESTAGE + (k - 1) % 8
+R_ESTAGE = 64
+NR = 72
 Q_MEAS, Q_ARR, Q_X = 0, 1, 2  # queue entry: measurement step, arrival step, state at 2-7
 Q_C, Q_S = 8, 9  # cos/sin of the measured heading
 NQ = 10
@@ -1049,6 +1056,13 @@ def _place_follower(state, k, proc, p, cfg, i, obs, truth):
     _observe(state, k, proc, p, cfg, i, obs, truth)
 
 
+def error_samples(err_hist, proc, i, n):
+    """Env i's first n error samples (a copy): err_hist[i] up to the last multiple of 8,
+    the rest from its staging columns (see step_range)."""
+    n8 = n - n % 8
+    return np.concatenate((err_hist[i, :n8], proc[i, R_ESTAGE:R_ESTAGE + n - n8]))
+
+
 @njit(cache=True)
 def first_bad_action(action):
     """-1, or the env index of the first non-finite entry of the flat (3N,) action."""
@@ -1112,8 +1126,10 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, ter
             a2 = min(1.0, max(-1.0, float(action[3 * i + 2])))
             link_tick(state, proc, queue, rs, p, cfg, i, k[i])
             err = _observe(state, k, proc, p, cfg, i, obs, truth)
-            if k[i] - 1 < err_hist.shape[0]:
-                err_hist[k[i] - 1, i] = err
+            ks = k[i] - 1  # this sample's index, and its place in the staging columns
+            slot = ks & 7
+            if ks < err_hist.shape[1]:
+                proc[i, R_ESTAGE + slot] = err
             finite = True
             for c in range(9):
                 if not math.isfinite(state[i, c]):
@@ -1128,6 +1144,9 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, ter
                 r -= maxd * max(0, nsteps - k[i])  # terminating never pays
             rew[i] = r
             term[i] = done
+            if ks < err_hist.shape[1] and (slot == 7 or done or k[i] >= nsteps):
+                for c in range(slot + 1):
+                    err_hist[i, ks - slot + c] = proc[i, R_ESTAGE + c]
 
 
 @njit(cache=True)
@@ -1137,7 +1156,8 @@ def step_kernel(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, te
     ``action`` is flat, length 3N, in [-1, 1] (clipped here) and scaled by the force
     limits. Returns -1, or the index of the first env whose action is not finite, in which
     case nothing at all was changed. Writes obs, truth, reward and termination flags, and
-    the error sample into err_hist[k - 1, i] (steps x envs: one contiguous row per step).
+    the error sample k - 1 of env i into err_hist[i] (through the staging columns of proc:
+    complete up to a multiple of 8 samples, and entirely once the episode has ended).
     """
     bad = first_bad_action(action)
     if bad >= 0:

@@ -127,12 +127,10 @@ def _pairwise(x, lo, n, square):
 
 @njit(cache=True)
 def _history_metrics(err_hist, ids, lengths, steady0, out):
-    buf = np.empty(err_hist.shape[0])  # one episode's samples, contiguous (a history column is strided)
     for q in range(ids.shape[0]):
         j = ids[q]
         n = lengths[q]
-        for i in range(n):
-            buf[i] = err_hist[i, j]
+        row = err_hist[j]
         for w in range(2):
             lo = 0 if w == 0 else steady0
             m = n - lo
@@ -140,23 +138,23 @@ def _history_metrics(err_hist, ids, lengths, steady0, out):
                 for c in range(3):
                     out[3 * w + c, j] = math.nan
                 continue
-            mx = buf[lo]
+            mx = row[lo]
             for i in range(lo + 1, n):
-                v = buf[i]
+                v = row[i]
                 if v > mx or v != v:  # (NaN propagates, as in np.max)
                     mx = v
-            out[3 * w, j] = (0.0 + _pairwise(buf, lo, m, False)) / m
-            out[3 * w + 1, j] = math.sqrt((0.0 + _pairwise(buf, lo, m, True)) / m)
+            out[3 * w, j] = (0.0 + _pairwise(row, lo, m, False)) / m
+            out[3 * w + 1, j] = math.sqrt((0.0 + _pairwise(row, lo, m, True)) / m)
             out[3 * w + 2, j] = mx
 
 
 def history_metrics(err_hist: np.ndarray, ids: np.ndarray, lengths: np.ndarray, times: np.ndarray,
                     steady_start: float = 10.0) -> np.ndarray:
-    """:func:`tracking_metrics` of episodes stored as columns of a (steps, envs) error history.
+    """:func:`tracking_metrics` of episodes stored as rows of an (envs, steps) error history.
 
     Args:
-        err_hist: (S, E) float64 error samples [m]; episode ``ids[q]`` is
-            ``err_hist[:lengths[q], ids[q]]``.
+        err_hist: (E, S) float64 error samples [m]; episode ``ids[q]`` is
+            ``err_hist[ids[q], :lengths[q]]``.
         ids: env columns (int64), lengths: their sample counts (each 0..S).
         times: the sample times (S,) [s], increasing (the steady window is a suffix).
         steady_start: first time of the steady-state window [s].
@@ -170,14 +168,14 @@ def history_metrics(err_hist: np.ndarray, ids: np.ndarray, lengths: np.ndarray, 
     t = np.asarray(times, dtype=np.float64)
     ids = np.asarray(ids, dtype=np.int64)
     lengths = np.asarray(lengths, dtype=np.int64)
-    if e.dtype != np.float64 or e.ndim != 2 or t.shape != e.shape[:1]:
-        raise ValueError(f"err_hist must be a (S, E) float64 array and times (S,), got {e.dtype} {e.shape} "
+    if e.dtype != np.float64 or e.ndim != 2 or t.shape != e.shape[1:]:
+        raise ValueError(f"err_hist must be an (E, S) float64 array and times (S,), got {e.dtype} {e.shape} "
                          f"and {t.shape}")
     if ids.shape != lengths.shape or ids.ndim != 1:
         raise ValueError(f"ids and lengths must be 1-D of equal length, got shapes {ids.shape} and {lengths.shape}")
-    if ids.size and (ids.min() < 0 or ids.max() >= e.shape[1] or lengths.min() < 0 or lengths.max() > e.shape[0]):
-        raise ValueError(f"ids must be in [0, {e.shape[1]}) and lengths in [0, {e.shape[0]}]")
+    if ids.size and (ids.min() < 0 or ids.max() >= e.shape[0] or lengths.min() < 0 or lengths.max() > e.shape[1]):
+        raise ValueError(f"ids must be in [0, {e.shape[0]}) and lengths in [0, {e.shape[1]}]")
     steady0 = int(np.searchsorted(t >= steady_start - 1e-9, True)) if t.size else 0
-    out = np.full((len(METRIC_KEYS), e.shape[1]), np.nan)
+    out = np.full((len(METRIC_KEYS), e.shape[0]), np.nan)
     _history_metrics(e, ids, lengths, steady0, out)
     return out

@@ -223,6 +223,14 @@ def check_fast_math(fast_math: object) -> bool:
     return bool(fast_math)
 
 
+def _aligned_zeros(rows: int, cols: int) -> np.ndarray:
+    """A zero (rows, cols) float64 array whose rows start on 64-byte cache lines where cols is a
+    multiple of 8 (so each 8-sample write of the error history fills exactly one line)."""
+    buf = np.zeros(rows * cols + 8)
+    off = (-buf.ctypes.data % 64) // 8
+    return buf[off:off + rows * cols].reshape(rows, cols)
+
+
 class BatchSim:
     """N independent AUVFollow episodes stepped together by the numba kernels.
 
@@ -246,7 +254,7 @@ class BatchSim:
         self.conditions: list[dict | None] = [None] * num_envs
         self.obs = np.zeros((num_envs, OBS_DIM_V1 if self.v1 else OBS_DIM), dtype=np.float32)
         self.truth = np.zeros((num_envs, dyn.NT))
-        self.err_hist = np.zeros((config.n_steps, num_envs))  # step x env: each step writes one row
+        self.err_hist = _aligned_zeros(num_envs, config.n_steps)  # env x sample (see dynamics.step_range)
         self.rew = np.zeros(num_envs)
         self.term = np.zeros(num_envs, dtype=np.bool_)
         self.sample_times = config.dt * np.arange(1, config.n_steps + 1)
@@ -286,4 +294,4 @@ class BatchSim:
     def errors(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """(errors, times) recorded so far in env i's episode (post-step samples)."""
         n = min(int(self.k[i]), self.config.n_steps)
-        return self.err_hist[:n, i], self.sample_times[:n]
+        return dyn.error_samples(self.err_hist, self.proc, i, n), self.sample_times[:n]

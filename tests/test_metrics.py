@@ -110,11 +110,11 @@ def test_batch_tracking_metrics_by_hand_and_equal_to_the_single_episode_function
 
 
 def test_history_metrics_by_hand_and_bit_for_bit_the_numpy_function():
-    """The compiled metrics of (steps x envs) histories: hand values, then every length
+    """The compiled metrics of (envs x steps) histories: hand values, then every length
     0-300 and long ones against :func:`tracking_metrics` (numpy's pairwise sums) bit for bit."""
     from auv_follow_env.metrics import METRIC_KEYS, history_metrics
 
-    hist = np.array([[1.0, 0.0, 9.0], [2.0, 0.0, 9.0], [3.0, 4.0, 9.0]])  # 3 steps x 3 envs
+    hist = np.array([[1.0, 0.0, 9.0], [2.0, 0.0, 9.0], [3.0, 4.0, 9.0]]).T  # 3 envs x 3 steps
     t = np.array([5.0, 10.0, 15.0])
     out = history_metrics(hist, np.array([0, 1]), np.array([3, 3]), t, steady_start=10.0)
     assert out.shape == (6, 3)
@@ -128,11 +128,12 @@ def test_history_metrics_by_hand_and_bit_for_bit_the_numpy_function():
     rng = np.random.default_rng(1)
     lengths = np.r_[np.arange(0, 301), [1199, 1200, 2047, 4097, 9000]]
     S = int(lengths.max())
-    hist = rng.exponential(0.3, (S, lengths.size)) * rng.uniform(0.01, 50.0, lengths.size)
+    hist = rng.exponential(0.3, (lengths.size, S)) * rng.uniform(0.01, 50.0, (lengths.size, 1))
     times = 0.05 * np.arange(1, S + 1)
     out = history_metrics(hist, np.arange(lengths.size), lengths, times, 10.0)
+    assert out.shape == (6, lengths.size)
     for j, n in enumerate(lengths):
-        ref = tracking_metrics(hist[:n, j].copy(), times[:n], 10.0) if n else dict.fromkeys(METRIC_KEYS, np.nan)
+        ref = tracking_metrics(hist[j, :n].copy(), times[:n], 10.0) if n else dict.fromkeys(METRIC_KEYS, np.nan)
         for c, key in enumerate(METRIC_KEYS):
             v = out[c, j]
             assert v == ref[key] or (math.isnan(v) and math.isnan(ref[key])), (n, key, v, ref[key])
