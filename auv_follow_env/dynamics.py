@@ -30,6 +30,10 @@ Array conventions (documented column maps below):
 * ``rs``     (N,) uint64: each env's SplitMix64 generator state (seeded from the env's numpy
   generator at reset; v0 settings draw nothing from it);
 * ``params`` (N, NP) float64: per-episode plant/target/current/disturbance/link parameters;
+* ``err_hist`` (N, S) float64: each env's tracking-error samples of its episode (row i, sample
+  k - 1 after step k), written 8 at a time from the staging columns R_ESTAGE.. of ``proc``, and
+  at once when the episode ends (termination or k = n_steps): :func:`error_samples` reads
+  them at any time;
 * ``cfg``    (NC,) float64: static configuration shared by the batch.
 
 The target link (one code path for v0 and v1). At every send time the target's present
@@ -111,7 +115,10 @@ R_TS, R_TC = 36, 46  # tone sines (36-45) and cosines (46-55) at t = R_TK * dt
 R_PSK, R_PSC, R_PSS = 56, 57, 58  # follower heading, its cos, its sin
 R_PTK, R_PTC, R_PTS = 59, 60, 61  # target heading, its cos, its sin
 R_HC, R_HS = 62, 63  # cos/sin of the held packet's heading
-NR = 64
+# the episode's last error samples, staged in the env's own row (hot in cache) and written to
+# err_hist 8 at a time (one cache line); sample k - 1 sits in column R_ESTAGE + (k - 1) % 8
+R_ESTAGE = 64
+NR = 72
 Q_MEAS, Q_ARR, Q_X = 0, 1, 2  # queue entry: measurement step, arrival step, state at 2-7
 Q_C, Q_S = 8, 9  # cos/sin of the measured heading
 NQ = 10
@@ -150,18 +157,24 @@ def uniform01(rs, i):
 
 
 @njit(cache=True)
-def normal01(rs, proc, i):
-    """A standard normal deviate (Box-Muller; the pair's second value is cached in proc)."""
+def normal01(rs, proc, i, fast=False):
+    """A standard normal deviate (Box-Muller; the pair's second value is cached in proc).
+    ``fast`` (fast_math): the angle's sin/cos by :func:`fast_sincos` (the log stays libm)."""
     if proc[i, R_GAUSS_HAS] != 0.0:
         proc[i, R_GAUSS_HAS] = 0.0
         return proc[i, R_GAUSS]
     u1 = 1.0 - uniform01(rs, i)  # (0, 1]
     u2 = uniform01(rs, i)
     rad = math.sqrt(-2.0 * math.log(u1))
-    a = 2.0 * math.pi * u2
-    proc[i, R_GAUSS] = rad * math.sin(a)
+    a = 2.0 * math.pi * u2  # in [0, 2 pi): within fast_sincos' range
+    if fast:
+        sa, ca = fast_sincos(a)
+    else:
+        sa = math.sin(a)
+        ca = math.cos(a)
+    proc[i, R_GAUSS] = rad * sa
     proc[i, R_GAUSS_HAS] = 1.0
-    return rad * math.cos(a)
+    return rad * ca
 
 
 @njit(cache=True)
@@ -174,11 +187,11 @@ def draw_uniforms(rs, n):
 
 
 @njit(cache=True)
-def draw_normals(rs, proc, n):
-    """``n`` standard normals from env 0's generator (for tests)."""
+def draw_normals(rs, proc, n, fast=False):
+    """``n`` standard normals from env 0's generator (for tests; ``fast``: as with fast_math)."""
     out = np.empty(n)
     for j in range(n):
-        out[j] = normal01(rs, proc, 0)
+        out[j] = normal01(rs, proc, 0, fast)
     return out
 
 
@@ -623,37 +636,44 @@ def _load_random_forcing(proc, i, wk, b):
 
 
 @njit(cache=True)
-def _gm(x, a, std, rs, proc, i):
+def _gm(x, a, std, rs, proc, i, fast=False):
     """One exact step of a stationary Gauss-Markov (OU) process with per-step decay a."""
-    return a * x + math.sqrt(1.0 - a * a) * std * normal01(rs, proc, i)
+    return a * x + math.sqrt(1.0 - a * a) * std * normal01(rs, proc, i, fast)
 
 
 @njit(cache=True, inline="always")
-def update_processes(proc, rs, p, i):
-    """Advance env i's random processes by one control step (draws only where a std > 0)."""
+def update_processes(proc, rs, p, i, fast=False):
+    """Advance env i's random processes by one control step (draws only where a std > 0).
+    ``fast`` (fast_math): the normals' and the current's sin/cos by :func:`fast_sincos`."""
     if p[i, P_OUU_STD] > 0.0:
-        proc[i, R_OUU] = _gm(proc[i, R_OUU], p[i, P_OUU_A], p[i, P_OUU_STD], rs, proc, i)
+        proc[i, R_OUU] = _gm(proc[i, R_OUU], p[i, P_OUU_A], p[i, P_OUU_STD], rs, proc, i, fast)
     if p[i, P_OUR_STD] > 0.0:
-        proc[i, R_OUR] = _gm(proc[i, R_OUR], p[i, P_OUR_A], p[i, P_OUR_STD], rs, proc, i)
+        proc[i, R_OUR] = _gm(proc[i, R_OUR], p[i, P_OUR_A], p[i, P_OUR_STD], rs, proc, i, fast)
     moved = False
     if p[i, P_CS_STD] > 0.0:
-        proc[i, R_CSX] = _gm(proc[i, R_CSX], p[i, P_CS_A], p[i, P_CS_STD], rs, proc, i)
+        proc[i, R_CSX] = _gm(proc[i, R_CSX], p[i, P_CS_A], p[i, P_CS_STD], rs, proc, i, fast)
         moved = True
     if p[i, P_CD_STEP] > 0.0:
-        proc[i, R_CDIR] += p[i, P_CD_STEP] * normal01(rs, proc, i)
+        proc[i, R_CDIR] += p[i, P_CD_STEP] * normal01(rs, proc, i, fast)
         moved = True
     if moved:
-        _current_vector(proc, p, i)
+        _current_vector(proc, p, i, fast)
     for c in range(3):
         if p[i, P_DN + c] > 0.0:
-            proc[i, R_DN + c] = _gm(proc[i, R_DN + c], p[i, P_DN_A], p[i, P_DN + c], rs, proc, i)
+            proc[i, R_DN + c] = _gm(proc[i, R_DN + c], p[i, P_DN_A], p[i, P_DN + c], rs, proc, i, fast)
 
 
 @njit(cache=True)
-def _current_vector(proc, p, i):
+def _current_vector(proc, p, i, fast=False):
     sp = max(0.0, p[i, P_CS_MEAN] + proc[i, R_CSX])
-    proc[i, R_CGX] = sp * math.cos(proc[i, R_CDIR])
-    proc[i, R_CGY] = sp * math.sin(proc[i, R_CDIR])
+    d = proc[i, R_CDIR]  # (a random walk: |d| can exceed fast_sincos' range only after ~1e10 steps)
+    if fast and abs(d) <= FAST_TRIG_MAX:
+        s, c = fast_sincos(d)
+    else:
+        c = math.cos(d)
+        s = math.sin(d)
+    proc[i, R_CGX] = sp * c
+    proc[i, R_CGY] = sp * s
 
 
 @njit(cache=True, inline="always")
@@ -731,6 +751,13 @@ def _init_processes(proc, rs, p, i, direction):
             proc[i, R_DN + c] = p[i, P_DN + c] * normal01(rs, proc, i)
 
 
+@njit(cache=True, inline="always")
+def _ring(s, q):
+    """s mod q for 0 <= s < 2q: the ring index of the packet queue (a compare instead of an
+    integer division, which costs tens of cycles and was several of them per env-step)."""
+    return s - q if s >= q else s
+
+
 @njit(cache=True)
 def _send(state, proc, queue, rs, p, cfg, i, step):
     """Measure the target at control step ``step`` and put the packet in flight (or lose it)."""
@@ -792,9 +819,9 @@ def _send(state, proc, queue, rs, p, cfg, i, step):
     if n == Q:  # full: the oldest packet in flight is dropped
         if queue[i, head, Q_MEAS] >= 0:
             proc[i, R_OVERFLOW] += 1.0
-        head = (head + 1) % Q
+        head = _ring(head + 1, Q)
         n -= 1
-    slot = (head + n) % Q
+    slot = _ring(head + n, Q)
     queue[i, slot, Q_MEAS] = step
     queue[i, slot, Q_ARR] = step + math.ceil(lat - 1e-6)
     queue[i, slot, Q_X] = xt
@@ -831,13 +858,13 @@ def link_tick(state, proc, queue, rs, p, cfg, i, step):
     newest = -1
     fifo = p[i, P_LAT_KIND] == LAT_CONSTANT  # constant latency: packets arrive in send order
     for m in range(n):
-        if queue[i, (head + m) % Q, Q_ARR] <= step:
+        if queue[i, _ring(head + m, Q), Q_ARR] <= step:
             newest = m
         elif fifo:
             break
     if newest < 0:
         return
-    slot = (head + newest) % Q
+    slot = _ring(head + newest, Q)
     for c in range(6):
         proc[i, R_HX + c] = queue[i, slot, Q_X + c]
     proc[i, R_HMEAS] = queue[i, slot, Q_MEAS]
@@ -851,9 +878,9 @@ def link_tick(state, proc, queue, rs, p, cfg, i, step):
     if queue[i, slot, Q_MEAS] >= 0:
         proc[i, R_ARRIVED] += 1.0
     for m in range(newest):  # older packets still in flight: they would arrive out of order
-        if queue[i, (head + m) % Q, Q_MEAS] >= 0:
+        if queue[i, _ring(head + m, Q), Q_MEAS] >= 0:
             proc[i, R_DISCARDED] += 1.0
-    proc[i, R_QHEAD] = (head + newest + 1) % Q
+    proc[i, R_QHEAD] = _ring(head + newest + 1, Q)
     proc[i, R_QLEN] = n - newest - 1
 
 
@@ -1029,6 +1056,13 @@ def _place_follower(state, k, proc, p, cfg, i, obs, truth):
     _observe(state, k, proc, p, cfg, i, obs, truth)
 
 
+def error_samples(err_hist, proc, i, n):
+    """Env i's first n error samples (a copy): err_hist[i] up to the last multiple of 8,
+    the rest from its staging columns (see step_range)."""
+    n8 = n - n % 8
+    return np.concatenate((err_hist[i, :n8], proc[i, R_ESTAGE:R_ESTAGE + n - n8]))
+
+
 @njit(cache=True)
 def first_bad_action(action):
     """-1, or the env index of the first non-finite entry of the flat (3N,) action."""
@@ -1083,7 +1117,7 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, ter
             for c in range(9):
                 state[i, c] = wk[_ix(K_ST + c, b)]
             k[i] += 1
-            update_processes(proc, rs, p, i)
+            update_processes(proc, rs, p, i, fast)
         refresh_trig_block(k, proc, cfg, a, m, wk, fast)  # the new step's libm values, used from here on
         for b in range(m):
             i = a + b
@@ -1092,8 +1126,10 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, ter
             a2 = min(1.0, max(-1.0, float(action[3 * i + 2])))
             link_tick(state, proc, queue, rs, p, cfg, i, k[i])
             err = _observe(state, k, proc, p, cfg, i, obs, truth)
-            if k[i] - 1 < err_hist.shape[0]:
-                err_hist[k[i] - 1, i] = err
+            ks = k[i] - 1  # this sample's index, and its place in the staging columns
+            slot = ks & 7
+            if ks < err_hist.shape[1]:
+                proc[i, R_ESTAGE + slot] = err
             finite = True
             for c in range(9):
                 if not math.isfinite(state[i, c]):
@@ -1108,6 +1144,9 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, ter
                 r -= maxd * max(0, nsteps - k[i])  # terminating never pays
             rew[i] = r
             term[i] = done
+            if ks < err_hist.shape[1] and (slot == 7 or done or k[i] >= nsteps):
+                for c in range(slot + 1):
+                    err_hist[i, ks - slot + c] = proc[i, R_ESTAGE + c]
 
 
 @njit(cache=True)
@@ -1117,7 +1156,8 @@ def step_kernel(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, te
     ``action`` is flat, length 3N, in [-1, 1] (clipped here) and scaled by the force
     limits. Returns -1, or the index of the first env whose action is not finite, in which
     case nothing at all was changed. Writes obs, truth, reward and termination flags, and
-    the error sample into err_hist[k - 1, i] (steps x envs: one contiguous row per step).
+    the error sample k - 1 of env i into err_hist[i] (through the staging columns of proc:
+    complete up to a multiple of 8 samples, and entirely once the episode has ended).
     """
     bad = first_bad_action(action)
     if bad >= 0:

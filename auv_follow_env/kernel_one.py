@@ -13,9 +13,9 @@ block of one lane, where every loop over lanes is a single iteration known at co
 Same operations in the same order: results are bit-identical to the vector env's
 (tests/test_kernel_one.py compares every array after every step).
 
-Buffer layout (float64 slots): a header (queue capacity, observation length, history length),
-then cfg, state, k (int64), rs (uint64), proc, params, truth, rew, term (bool), obs (float32,
-up to 20), queue, err_hist.
+Buffer layout (float64 slots): a header (queue capacity, observation length, history length and
+offset), then cfg, state, k (int64), rs (uint64), proc, params, truth, rew, term (bool), obs
+(float32, up to 20), queue, err_hist (from a 64-byte boundary).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ __all__ = ["packed_arrays", "step_one"]
 
 _NC, _NR, _NP, _NT, _NQ = dyn.NC, dyn.NR, dyn.NP, dyn.NT, dyn.NQ
 _OBS_SLOTS = 10  # float64 slots for the float32 observation (up to 20 values)
-O_HDR = 0  # header: queue capacity, obs length, err_hist length
+O_HDR = 0  # header: queue capacity, obs length, err_hist length, err_hist offset
 O_CFG = 4
 O_ST = O_CFG + _NC
 O_K = O_ST + 9
@@ -53,12 +53,15 @@ def packed_arrays(q: int, d: int, h: int) -> tuple[np.ndarray, dict[str, np.ndar
     """(buffer, arrays): zeroed one-env arrays of BatchSim (state, k, proc, queue, rs, params,
     cfg, obs, truth, err_hist, rew, term) with their usual shapes and dtypes, all views of
     ``buffer``; ``q`` the queue capacity, ``d`` the observation length, ``h`` the steps of an
-    episode (err_hist rows)."""
+    episode (err_hist columns)."""
     if not 0 < d <= 2 * _OBS_SLOTS:
         raise ValueError(f"observation length {d} does not fit the packed layout")
+    buf = np.zeros(O_Q + q * _NQ + h + 8)
+    # err_hist from the first 64-byte cache line after the queue (as sim._aligned_zeros); its
+    # offset, which depends on the buffer's address, is in the header
     o_e = O_Q + q * _NQ
-    buf = np.zeros(o_e + h)
-    buf[O_HDR:O_HDR + 3] = q, d, h
+    o_e += (-(buf.ctypes.data + 8 * o_e) % 64) // 8
+    buf[O_HDR:O_HDR + 4] = q, d, h, o_e
     arrays = {
         "state": buf[O_ST:O_ST + 9].reshape(1, 9),
         "k": buf[O_K:O_K + 1].view(np.int64),
@@ -69,7 +72,7 @@ def packed_arrays(q: int, d: int, h: int) -> tuple[np.ndarray, dict[str, np.ndar
         "cfg": buf[O_CFG:O_CFG + _NC],
         "obs": buf[O_OBS:O_OBS + _OBS_SLOTS].view(np.float32)[:d].reshape(1, d),
         "truth": buf[O_TR:O_TR + _NT].reshape(1, _NT),
-        "err_hist": buf[o_e:o_e + h].reshape(h, 1),
+        "err_hist": buf[o_e:o_e + h].reshape(1, h),
         "rew": buf[O_REW:O_REW + 1],
         "term": buf[O_TERM:O_TERM + 1].view(np.bool_)[:1],
     }
@@ -97,13 +100,13 @@ def _views(buf):
     q = int(buf[O_HDR])
     d = int(buf[O_HDR + 1])
     h = int(buf[O_HDR + 2])
-    o_e = O_Q + q * _NQ
+    o_e = int(buf[O_HDR + 3])
     f8 = np.float64
     return (carray(_address(buf, O_ST), (1, 9), f8), carray(_address(buf, O_K), 1, np.int64),
             carray(_address(buf, O_PROC), (1, _NR), f8), carray(_address(buf, O_Q), (1, q, _NQ), f8),
             carray(_address(buf, O_RS), 1, np.uint64), carray(_address(buf, O_PAR), (1, _NP), f8),
             carray(_address(buf, O_CFG), _NC, f8), carray(_address(buf, O_OBS), (1, d), np.float32),
-            carray(_address(buf, O_TR), (1, _NT), f8), carray(_address(buf, o_e), (h, 1), f8),
+            carray(_address(buf, O_TR), (1, _NT), f8), carray(_address(buf, o_e), (1, h), f8),
             carray(_address(buf, O_REW), 1, f8), carray(_address(buf, O_TERM), 1, np.bool_))
 
 

@@ -9,6 +9,7 @@ format output.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -107,34 +108,42 @@ def params_from_uniforms(config: EnvConfig, u: np.ndarray, *, vehicle: VehiclePa
     veh = config.true_vehicle if vehicle is None else vehicle
     speed, surge_amp, yaw_amp = (tp.speed, tp.surge_amp, tp.yaw_rate_amp) if target is None else target
     cur_x, cur_y = (lvl.current_x, lvl.current_y) if current is None else current
+    base = _base_row(veh, float(speed), float(surge_amp), float(tp.surge_period), float(yaw_amp),
+                     float(tp.yaw_period), config.delay_steps, tuple(cur_x), tuple(cur_y), tuple(lvl.peaks))
+    rows = np.empty((u.shape[0], dyn.NP))
+    rows[:] = base
     lo, hi = CURRENT_PERIOD_RANGE
-    base = param_row(vehicle=veh, target_speed=speed, surge_amp=surge_amp, surge_period=tp.surge_period,
-                     yaw_rate_amp=yaw_amp, yaw_period=tp.yaw_period, latency_steps=config.delay_steps)
-    n = u.shape[0]
-    # the uniforms' columns as (n,) arrays, or as floats for one row: the same IEEE double
-    # operations give the same values, with a fraction of the numpy calls (the single env's reset)
-    us = u[0].tolist() if n == 1 else list(u.T)
-    vals = {dyn.P_TPU: TWO_PI * us[0], dyn.P_TPR: TWO_PI * us[1]}
-    for col, (a, b), j in ((dyn.P_CX, cur_x, 2), (dyn.P_CY, cur_y, 4)):
-        vals[col] = 0.5 * (a + b)
-        vals[col + 1] = 0.5 * (b - a)
-        vals[col + 2] = TWO_PI / (lo + (hi - lo) * us[j])
-        vals[col + 3] = TWO_PI * us[j + 1]
+    rows[:, _PHASE_COLS] = TWO_PI * u[:, _PHASE_U]
+    rows[:, _PERIOD_COLS] = TWO_PI / (lo + (hi - lo) * u[:, _PERIOD_U])
+    return rows
+
+
+#: the param columns set from the 12 uniforms: phases (2 pi u) and the current's two tone
+#: frequencies (2 pi / period, the period uniform in CURRENT_PERIOD_RANGE), with the uniforms' index
+_PHASE_COLS = [dyn.P_TPU, dyn.P_TPR, dyn.P_CX + 3, dyn.P_CY + 3] + [dyn.P_D + 4 * c + k for c in range(3)
+                                                                  for k in (1, 3)]
+_PHASE_U = [0, 1, 3, 5, 6, 7, 8, 9, 10, 11]
+_PERIOD_COLS = [dyn.P_CX + 2, dyn.P_CY + 2]
+_PERIOD_U = [2, 4]
+
+
+@functools.lru_cache(maxsize=256)
+def _base_row(veh: VehicleParams, speed: float, surge_amp: float, surge_period: float, yaw_amp: float,
+              yaw_period: float, delay_steps: int, cur_x: tuple, cur_y: tuple, peaks: tuple) -> np.ndarray:
+    """The part of a v0 param row that does not depend on the uniforms (read-only, cached:
+    a reset of a few envs would otherwise spend most of its time rebuilding it)."""
+    row = param_row(vehicle=veh, target_speed=speed, surge_amp=surge_amp, surge_period=surge_period,
+                    yaw_rate_amp=yaw_amp, yaw_period=yaw_period, latency_steps=delay_steps)
+    for col, (a, b) in ((dyn.P_CX, cur_x), (dyn.P_CY, cur_y)):
+        row[col] = 0.5 * (a + b)
+        row[col + 1] = 0.5 * (b - a)
     scale = (veh.m, veh.m, veh.I_z)  # Table 3 peaks read per unit mass (docs/paper_notes.md)
     w1, w2 = dyn.DIST_WEIGHT
-    for c, (pk, sc) in enumerate(zip(lvl.peaks, scale, strict=True)):
-        col = dyn.P_D + 4 * c
-        vals[col] = w1 * pk * sc
-        vals[col + 1] = TWO_PI * us[6 + 2 * c]
-        vals[col + 2] = w2 * pk * sc
-        vals[col + 3] = TWO_PI * us[7 + 2 * c]
-    if n == 1:
-        base[list(vals)] = list(vals.values())
-        return base[None, :]
-    rows = np.repeat(base[None, :], n, axis=0)
-    for col, v in vals.items():
-        rows[:, col] = v
-    return rows
+    for c, (pk, sc) in enumerate(zip(peaks, scale, strict=True)):
+        row[dyn.P_D + 4 * c] = w1 * pk * sc
+        row[dyn.P_D + 4 * c + 2] = w2 * pk * sc
+    row.flags.writeable = False
+    return row
 
 
 def sample_params_v1(config: EnvConfig, rng: np.random.Generator) -> tuple[np.ndarray, int, float, dict]:
@@ -215,6 +224,14 @@ def check_fast_math(fast_math: object) -> bool:
     return bool(fast_math)
 
 
+def _aligned_zeros(rows: int, cols: int) -> np.ndarray:
+    """A zero (rows, cols) float64 array whose rows start on 64-byte cache lines where cols is a
+    multiple of 8 (so each 8-sample write of the error history fills exactly one line)."""
+    buf = np.zeros(rows * cols + 8)
+    off = (-buf.ctypes.data % 64) // 8
+    return buf[off:off + rows * cols].reshape(rows, cols)
+
+
 class BatchSim:
     """N independent AUVFollow episodes stepped together by the numba kernels.
 
@@ -251,7 +268,7 @@ class BatchSim:
             self.params = np.zeros((num_envs, dyn.NP))
             self.obs = np.zeros((num_envs, obs_dim), dtype=np.float32)
             self.truth = np.zeros((num_envs, dyn.NT))
-            self.err_hist = np.zeros((config.n_steps, num_envs))  # step x env: each step writes one row
+            self.err_hist = _aligned_zeros(num_envs, config.n_steps)  # env x sample (see dynamics.step_range)
             self.rew = np.zeros(num_envs)
             self.term = np.zeros(num_envs, dtype=np.bool_)
         self.conditions: list[dict | None] = [None] * num_envs
@@ -299,4 +316,4 @@ class BatchSim:
     def errors(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """(errors, times) recorded so far in env i's episode (post-step samples)."""
         n = min(int(self.k[i]), self.config.n_steps)
-        return self.err_hist[:n, i], self.sample_times[:n]
+        return dyn.error_samples(self.err_hist, self.proc, i, n), self.sample_times[:n]

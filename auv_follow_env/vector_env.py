@@ -20,7 +20,7 @@ from gymnasium.vector.utils import batch_space
 
 from auv_follow_env import dynamics as dyn
 from auv_follow_env.env import check_action
-from auv_follow_env.metrics import METRIC_KEYS, batch_tracking_metrics
+from auv_follow_env.metrics import METRIC_KEYS, history_metrics
 from auv_follow_env.params import TaskSpec
 from auv_follow_env.sim import BatchSim, check_fast_math
 from auv_follow_env.tiers import make_env_config
@@ -360,15 +360,11 @@ class AUVFollowVectorEnv(VectorEnv):
 
     def _episode_metrics(self, done: np.ndarray) -> dict[str, np.ndarray]:
         """The paper's metrics of the episodes that ended (NaN elsewhere), with masks."""
-        out = {key: np.full(self.num_envs, np.nan) for key in METRIC_KEYS}
         sim = self._sim
         ids = np.flatnonzero(done)
-        lengths = np.minimum(sim.k[ids], self.config.n_steps)
-        for n in np.unique(lengths):  # the envs of one episode length at once (the same values)
-            group = ids[lengths == n]
-            for key, col in batch_tracking_metrics(sim.err_hist[:n, group].T, sim.sample_times[:n],
-                                                   self.config.steady_start_s).items():
-                out[key][group] = col
+        rows = history_metrics(sim.err_hist, ids, np.minimum(sim.k[ids], self.config.n_steps), sim.sample_times,
+                               self.config.steady_start_s)
+        out: dict[str, np.ndarray] = dict(zip(METRIC_KEYS, rows, strict=True))
         for key in METRIC_KEYS:
             out["_" + key] = done.copy()
         return out

@@ -45,7 +45,7 @@ def test_packed_arrays_are_views_with_the_usual_types():
         assert arr.flags.c_contiguous and arr.flags.writeable and arr.flags.aligned, name
         assert arr.dtype == getattr(ref, name).dtype and arr.ndim == getattr(ref, name).ndim, name
     assert arrays["queue"].shape == (1, 7, dyn.NQ) and arrays["obs"].shape == (1, 20)
-    assert arrays["err_hist"].shape == (100, 1)
+    assert arrays["err_hist"].shape == (1, 100) and arrays["err_hist"].ctypes.data % 64 == 0
     spans = sorted((a.ctypes.data, a.ctypes.data + a.nbytes) for a in arrays.values())
     assert all(e0 <= s1 for (_s0, e0), (s1, _e1) in zip(spans, spans[1:], strict=False))  # disjoint
     with pytest.raises(ValueError, match="observation length"):

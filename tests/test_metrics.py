@@ -107,3 +107,39 @@ def test_batch_tracking_metrics_by_hand_and_equal_to_the_single_episode_function
                 assert value == batch[key][j] or (math.isnan(value) and math.isnan(batch[key][j])), (n, j, key)
     with pytest.raises(ValueError, match="errors must be"):
         batch_tracking_metrics(np.zeros(3), np.zeros(3))
+
+
+def test_history_metrics_by_hand_and_bit_for_bit_the_numpy_function():
+    """The compiled metrics of (envs x steps) histories: hand values, then every length
+    0-300 and long ones against :func:`tracking_metrics` (numpy's pairwise sums) bit for bit."""
+    from auv_follow_env.metrics import METRIC_KEYS, history_metrics
+
+    hist = np.array([[1.0, 0.0, 9.0], [2.0, 0.0, 9.0], [3.0, 4.0, 9.0]]).T  # 3 envs x 3 steps
+    t = np.array([5.0, 10.0, 15.0])
+    out = history_metrics(hist, np.array([0, 1]), np.array([3, 3]), t, steady_start=10.0)
+    assert out.shape == (6, 3)
+    np.testing.assert_allclose(out[:, 0], [2.0, np.sqrt(14.0 / 3.0), 3.0, 2.5, np.sqrt(6.5), 3.0])
+    np.testing.assert_allclose(out[:, 1], [4.0 / 3.0, np.sqrt(16.0 / 3.0), 4.0, 2.0, np.sqrt(8.0), 4.0])
+    assert np.isnan(out[:, 2]).all()  # env 2 not listed
+    short = history_metrics(hist, np.array([2]), np.array([1]), t, steady_start=10.0)  # only t = 5 s
+    np.testing.assert_array_equal(short[:3, 2], [9.0, 9.0, 9.0])
+    assert np.isnan(short[3:, 2]).all()  # no sample in the steady window
+    assert np.isnan(history_metrics(hist, np.array([0]), np.array([0]), t)[:, 0]).all()
+    rng = np.random.default_rng(1)
+    lengths = np.r_[np.arange(0, 301), [1199, 1200, 2047, 4097, 9000]]
+    S = int(lengths.max())
+    hist = rng.exponential(0.3, (lengths.size, S)) * rng.uniform(0.01, 50.0, (lengths.size, 1))
+    times = 0.05 * np.arange(1, S + 1)
+    out = history_metrics(hist, np.arange(lengths.size), lengths, times, 10.0)
+    assert out.shape == (6, lengths.size)
+    for j, n in enumerate(lengths):
+        ref = tracking_metrics(hist[j, :n].copy(), times[:n], 10.0) if n else dict.fromkeys(METRIC_KEYS, np.nan)
+        for c, key in enumerate(METRIC_KEYS):
+            v = out[c, j]
+            assert v == ref[key] or (math.isnan(v) and math.isnan(ref[key])), (n, key, v, ref[key])
+    with pytest.raises(ValueError, match="ids must be in"):
+        history_metrics(hist, np.array([lengths.size]), np.array([1]), times)
+    with pytest.raises(ValueError, match="lengths must be"):
+        history_metrics(hist, np.array([0, 1]), np.array([1]), times)
+    with pytest.raises(ValueError, match="float64"):
+        history_metrics(hist.astype(np.float32), np.array([0]), np.array([1]), times)

@@ -385,3 +385,37 @@ def test_omp_wait_policy_sleeps_only_on_a_busy_machine(monkeypatch):
     monkeypatch.delenv("OMP_WAIT_POLICY")
     monkeypatch.setenv("GOMP_SPINCOUNT", "1000")
     assert omp_wait_policy(load=9.0, cpus=2) is None
+
+
+def test_error_history_equals_the_per_step_tracking_errors_at_every_step():
+    """The kernel stages each env's error samples and writes them 8 at a time: at every step
+    (any k, not only multiples of 8) ``errors(i)`` must equal the tracking errors the steps
+    reported, and an ended episode's metrics must be those of exactly that series."""
+    from auv_follow_env.metrics import tracking_metrics
+
+    n = 6
+    venv = AUVFollowVectorEnv(num_envs=n, scenario="S4", episode_s=3.0, steady_start_s=1.0)
+    venv.reset(seed=5)
+    sim = venv._sim
+    rng = np.random.default_rng(2)
+    seen = [[] for _ in range(n)]
+    ended_checked = 0
+    for _ in range(200):
+        a = rng.uniform(-1, 1, (n, 3)).astype(np.float32)
+        a[:2] *= 4.0  # clipped to +-1: envs 0-1 at full thrust, some terminate early
+        _, _, term, trunc, info = venv.step(a)
+        for i in range(n):
+            if not (sim.k[i] == 0):  # (an autoreset step starts a new series)
+                seen[i].append(info["tracking_error"][i])
+            else:
+                seen[i] = []
+            errs, times = sim.errors(i)
+            np.testing.assert_array_equal(errs, seen[i])
+            assert times.shape == errs.shape
+            if term[i] or trunc[i]:
+                ref = tracking_metrics(np.array(seen[i]), times, venv.config.steady_start_s)
+                for key, value in ref.items():
+                    got = info["episode_metrics"][key][i]
+                    assert got == value or (np.isnan(got) and np.isnan(value)), (i, key)
+                ended_checked += 1
+    assert ended_checked >= n  # every env ended at least once (3 s episodes, 200 steps)
