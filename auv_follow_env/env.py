@@ -19,6 +19,7 @@ __all__ = ["AUVFollowEnv", "check_action"]
 
 _IDX0 = np.zeros(1, dtype=np.int64)
 _FAST_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+_SHAPE3 = (3,)
 
 
 def check_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
@@ -216,10 +217,16 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.config.dt))}
         self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
         self.observation_space = spaces.Box(-np.inf, np.inf, (self.task_spec.obs_dim,), np.float32)
-        self._sim = BatchSim(self.config, 1, fast_math)
+        self._sim = BatchSim(self.config, 1, fast_math, packed=True)
         #: whether the step's sin/cos are the SIMD polynomial (``fast_math=True``) instead of libm
         self.fast_math = fast_math
-        self._kernel, self._args = self._sim.step_call()
+        self._step_one, self._buf = self._sim.step_one_call()
+        # views of the sim's arrays, copied into each step's output
+        self._obs0 = self._sim.obs[0]
+        self._true_target = self._sim.truth[0, dyn.T_TARGET]
+        self._true_reference = self._sim.truth[0, dyn.T_REF]
+        self._follower_pose = self._sim.truth[0, dyn.T_FOLLOWER]
+        self._dt = self.config.dt
         self._n_steps = self.config.n_steps
         self._started = False
         self._trails: deque | None = None
@@ -250,19 +257,17 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
     def step(self, action: Any):
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        if type(action) is not np.ndarray or action.shape != (3,) or action.dtype not in _FAST_DTYPES \
+        if action.__class__ is not np.ndarray or action.dtype not in _FAST_DTYPES or action.shape != _SHAPE3 \
                 or not action.flags.c_contiguous:
             action = check_action(action, (3,))
-        sim = self._sim
-        if self._kernel(*self._args, action) >= 0:
+        # the kernel returns the step's scalars (rew[0], term[0], k[0], truth[0, T_ERR])
+        bad, reward, terminated, k, err = self._step_one(self._buf, action)
+        if bad >= 0:
             raise ValueError(f"action={action.tolist()} contains NaN or inf: the env was not changed")
-        k = int(sim.k[0])
-        truth = sim.truth[0].copy()
-        terminated = bool(sim.term[0])
-        info = {"tracking_error": float(truth[12]), "time": k * self.config.dt,
-                "true_target": truth[3:9], "true_reference": truth[9:12],
-                "follower_pose": truth[0:3]}
+        info = {"tracking_error": err, "time": k * self._dt, "true_target": self._true_target.copy(),
+                "true_reference": self._true_reference.copy(), "follower_pose": self._follower_pose.copy()}
         if terminated or k == self._n_steps:
+            sim = self._sim
             info["episode_metrics"] = tracking_metrics(*sim.errors(0), self.config.steady_start_s)
             if sim.v1:
                 info["link_stats"] = sim.link_stats(0)
@@ -270,8 +275,7 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
             self._record_trail()
             if self.render_mode == "human":
                 self.render()
-        return (sim.obs[0].copy(), float(sim.rew[0]), terminated,
-                k >= self._n_steps and not terminated, info)
+        return self._obs0.copy(), reward, terminated, k >= self._n_steps and not terminated, info
 
     # --- rendering ------------------------------------------------------------------------
     def _record_trail(self) -> None:

@@ -15,6 +15,7 @@ import math
 import numpy as np
 
 from auv_follow_env import dynamics as dyn
+from auv_follow_env.kernel_one import packed_arrays, step_one
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1
 from auv_follow_env.params import LATENCY_MODELS, RANGEABLE, Condition, EnvConfig, VehicleParams
 
@@ -239,24 +240,38 @@ class BatchSim:
     glibc's libm: within 1 ULP, but not bit-identical to the default (see the env docs).
     """
 
-    def __init__(self, config: EnvConfig, num_envs: int, fast_math: bool = False) -> None:
+    def __init__(self, config: EnvConfig, num_envs: int, fast_math: bool = False, *, packed: bool = False) -> None:
         self.config = config
         self.num_envs = num_envs
-        self.cfg = config_vector(config)
-        self.cfg[dyn.C_FAST] = 1.0 if fast_math else 0.0
+        cfg = config_vector(config)
+        cfg[dyn.C_FAST] = 1.0 if fast_math else 0.0
         self.v1 = config.version == "v1"
-        self.state = np.zeros((num_envs, 9))
-        self.k = np.zeros(num_envs, dtype=np.int64)
-        self.proc = np.zeros((num_envs, dyn.NR))
-        self.queue = np.zeros((num_envs, int(self.cfg[dyn.C_Q]), dyn.NQ))
-        self.rs = np.zeros(num_envs, dtype=np.uint64)
-        self.params = np.zeros((num_envs, dyn.NP))
+        q = int(cfg[dyn.C_Q])
+        obs_dim = OBS_DIM_V1 if self.v1 else OBS_DIM
+        #: packed (one env only): every array below is a view of this one buffer, for
+        #: :func:`~auv_follow_env.kernel_one.step_one` (see :meth:`step_one_call`); else None
+        self.buf: np.ndarray | None = None
+        if packed:
+            if num_envs != 1:
+                raise ValueError(f"packed=True is for one env, not {num_envs}")
+            self.buf, arrays = packed_arrays(q, obs_dim, config.n_steps)
+            for name, arr in arrays.items():
+                setattr(self, name, arr)
+            self.cfg[:] = cfg
+        else:
+            self.cfg = cfg
+            self.state = np.zeros((num_envs, 9))
+            self.k = np.zeros(num_envs, dtype=np.int64)
+            self.proc = np.zeros((num_envs, dyn.NR))
+            self.queue = np.zeros((num_envs, q, dyn.NQ))
+            self.rs = np.zeros(num_envs, dtype=np.uint64)
+            self.params = np.zeros((num_envs, dyn.NP))
+            self.obs = np.zeros((num_envs, obs_dim), dtype=np.float32)
+            self.truth = np.zeros((num_envs, dyn.NT))
+            self.err_hist = _aligned_zeros(num_envs, config.n_steps)  # env x sample (dynamics.step_range)
+            self.rew = np.zeros(num_envs)
+            self.term = np.zeros(num_envs, dtype=np.bool_)
         self.conditions: list[dict | None] = [None] * num_envs
-        self.obs = np.zeros((num_envs, OBS_DIM_V1 if self.v1 else OBS_DIM), dtype=np.float32)
-        self.truth = np.zeros((num_envs, dyn.NT))
-        self.err_hist = _aligned_zeros(num_envs, config.n_steps)  # env x sample (see dynamics.step_range)
-        self.rew = np.zeros(num_envs)
-        self.term = np.zeros(num_envs, dtype=np.bool_)
         self.sample_times = config.dt * np.arange(1, config.n_steps + 1)
 
     def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
@@ -283,6 +298,13 @@ class BatchSim:
         """(kernel, leading args) so a hot loop can call ``kernel(*args, action_flat)``."""
         return (dyn.step_kernel, (self.state, self.k, self.proc, self.queue, self.rs, self.params, self.cfg,
                                   self.obs, self.truth, self.err_hist, self.rew, self.term))
+
+    def step_one_call(self) -> tuple:
+        """(kernel, buffer) of a packed sim: ``kernel(buffer, action)`` is one step, returning
+        (bad, reward, terminated, k, tracking error) (:func:`~auv_follow_env.kernel_one.step_one`)."""
+        if self.buf is None:
+            raise ValueError("step_one_call needs a BatchSim made with packed=True")
+        return step_one, self.buf
 
     def link_stats(self, i: int) -> dict[str, int]:
         """Env i's packet counts since t = 0: sent, lost, arrived (accepted), discarded

@@ -1,0 +1,170 @@
+"""The single env's step: the batched kernel's :func:`~auv_follow_env.dynamics.step_range` for
+one env, called with two arguments instead of thirteen.
+
+At N = 1 numba's dispatch of the thirteen arrays of :func:`~auv_follow_env.dynamics.step_kernel`
+costs about as much as the physics (each array argument is unboxed separately). Here all the
+arrays of a one-env :class:`~auv_follow_env.sim.BatchSim` are views of one float64 buffer
+(:func:`packed_arrays`); :func:`step_one` takes that buffer and the action, rebuilds the same
+views inside numba (the same array types) and returns the step's scalars, so the Python shell
+reads no numpy scalars. The step itself is ``step_range``'s own code (not a copy of its source:
+a second dispatcher of the same Python function) whose block functions ``advance_block`` and
+``gather_block`` are called with the lane count as the literal 1, so numba compiles them for a
+block of one lane, where every loop over lanes is a single iteration known at compile time.
+Same operations in the same order: results are bit-identical to the vector env's
+(tests/test_kernel_one.py compares every array after every step).
+
+Buffer layout (float64 slots): a header (queue capacity, observation length, history length),
+then cfg, state, k (int64), rs (uint64), proc, params, truth, rew, term (bool), obs (float32,
+up to 20), queue, err_hist.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import types as pytypes
+from pathlib import Path
+
+import numpy as np
+from numba import carray, njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+from auv_follow_env import dynamics as dyn
+
+__all__ = ["packed_arrays", "step_one"]
+
+_NC, _NR, _NP, _NT, _NQ = dyn.NC, dyn.NR, dyn.NP, dyn.NT, dyn.NQ
+_OBS_SLOTS = 10  # float64 slots for the float32 observation (up to 20 values)
+O_HDR = 0  # header: queue capacity, obs length, err_hist length
+O_CFG = 4
+O_ST = O_CFG + _NC
+O_K = O_ST + 9
+O_RS = O_K + 1
+O_PROC = O_RS + 1
+O_PAR = O_PROC + _NR
+O_TR = O_PAR + _NP
+O_REW = O_TR + _NT
+O_TERM = O_REW + 1
+O_OBS = O_TERM + 1
+O_Q = O_OBS + _OBS_SLOTS
+
+
+def packed_arrays(q: int, d: int, h: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """(buffer, arrays): zeroed one-env arrays of BatchSim (state, k, proc, queue, rs, params,
+    cfg, obs, truth, err_hist, rew, term) with their usual shapes and dtypes, all views of
+    ``buffer``; ``q`` the queue capacity, ``d`` the observation length, ``h`` the steps of an
+    episode (err_hist columns)."""
+    if not 0 < d <= 2 * _OBS_SLOTS:
+        raise ValueError(f"observation length {d} does not fit the packed layout")
+    o_e = O_Q + q * _NQ
+    buf = np.zeros(o_e + h)
+    buf[O_HDR:O_HDR + 3] = q, d, h
+    arrays = {
+        "state": buf[O_ST:O_ST + 9].reshape(1, 9),
+        "k": buf[O_K:O_K + 1].view(np.int64),
+        "proc": buf[O_PROC:O_PROC + _NR].reshape(1, _NR),
+        "queue": buf[O_Q:O_Q + q * _NQ].reshape(1, q, _NQ),
+        "rs": buf[O_RS:O_RS + 1].view(np.uint64),
+        "params": buf[O_PAR:O_PAR + _NP].reshape(1, _NP),
+        "cfg": buf[O_CFG:O_CFG + _NC],
+        "obs": buf[O_OBS:O_OBS + _OBS_SLOTS].view(np.float32)[:d].reshape(1, d),
+        "truth": buf[O_TR:O_TR + _NT].reshape(1, _NT),
+        "err_hist": buf[o_e:o_e + h].reshape(1, h),
+        "rew": buf[O_REW:O_REW + 1],
+        "term": buf[O_TERM:O_TERM + 1].view(np.bool_)[:1],
+    }
+    return buf, arrays
+
+
+@intrinsic
+def _address(typingctx, arr, offset):
+    """The address of element ``offset`` of the 1-D array ``arr`` (a voidptr)."""
+    sig = types.voidptr(arr, offset)
+
+    def codegen(context, builder, sig, args):
+        ary = context.make_array(sig.args[0])(context, builder, args[0])
+        off = context.cast(builder, args[1], sig.args[1], types.intp)
+        return builder.bitcast(cgutils.gep(builder, ary.data, off), cgutils.voidptr_t)
+
+    return sig, codegen
+
+
+@njit(cache=True, inline="always")
+def _views(buf):
+    """The arrays of :func:`packed_arrays`, in :func:`~auv_follow_env.dynamics.step_kernel`'s
+    order (carrays over ``buf``'s memory: no reshapes, no reference counts; valid while ``buf``
+    is, i.e. within the call)."""
+    q = int(buf[O_HDR])
+    d = int(buf[O_HDR + 1])
+    h = int(buf[O_HDR + 2])
+    o_e = O_Q + q * _NQ
+    f8 = np.float64
+    return (carray(_address(buf, O_ST), (1, 9), f8), carray(_address(buf, O_K), 1, np.int64),
+            carray(_address(buf, O_PROC), (1, _NR), f8), carray(_address(buf, O_Q), (1, q, _NQ), f8),
+            carray(_address(buf, O_RS), 1, np.uint64), carray(_address(buf, O_PAR), (1, _NP), f8),
+            carray(_address(buf, O_CFG), _NC, f8), carray(_address(buf, O_OBS), (1, d), np.float32),
+            carray(_address(buf, O_TR), (1, _NT), f8), carray(_address(buf, o_e), (1, h), f8),
+            carray(_address(buf, O_REW), 1, f8), carray(_address(buf, O_TERM), 1, np.bool_))
+
+
+@njit(inline="always")
+def _advance_one(wk, dt, nsub, m, pre, fast=False):
+    """:func:`~auv_follow_env.dynamics.advance_block` of a one-lane block, with the lane count a
+    compile-time constant (numba compiles a specialisation for the literal 1, where every loop
+    over lanes is one iteration known at compile time)."""
+    if m != 1:
+        raise AssertionError("kernel_one: a block of one env expected")
+    dyn.advance_block(wk, dt, nsub, 1, pre, fast)
+
+
+@njit(inline="always")
+def _gather_one(state, p, a, m, wk):
+    """:func:`~auv_follow_env.dynamics.gather_block` of one env (the lane count a constant)."""
+    if m != 1:
+        raise AssertionError("kernel_one: a block of one env expected")
+    dyn.gather_block(state, p, a, 1, wk)
+
+
+def _rebound(disp, **subs):
+    """A new dispatcher compiled from ``disp``'s own Python function (the same code object), with
+    the globals ``subs`` replaced."""
+    f = disp.py_func
+    glb = {**f.__globals__, **subs}
+    fn = pytypes.FunctionType(f.__code__, glb, f.__name__, f.__defaults__, f.__closure__)
+    fn.__qualname__ = f"{f.__qualname__}_one"
+    fn.__doc__ = f.__doc__
+    opts = {k: v for k, v in disp.targetoptions.items() if k != "nopython"}
+    return njit(**{**opts, "cache": False})(fn)
+
+
+#: dynamics.step_range, the same code, calling the one-lane block functions
+_step_range_one = _rebound(dyn.step_range, advance_block=_advance_one, gather_block=_gather_one)
+
+
+def _build():
+    # numba's on-disk cache is keyed on this file only, but step_one compiles dynamics' code into
+    # itself: the hash of dynamics.py, a closure variable, is part of the cache key, so an edit
+    # there recompiles step_one instead of loading a stale one
+    dynamics_hash = hashlib.sha256(Path(dyn.__file__).read_bytes()).hexdigest()
+
+    def step_one(buf, action):
+        """One control step of the env packed in ``buf`` (:func:`packed_arrays`) under the flat
+        action (3,) in [-1, 1]: :func:`~auv_follow_env.dynamics.step_kernel` for one env.
+
+        Returns (bad, reward, terminated, k, tracking error): bad is -1, or 0 if the action is
+        not finite (then nothing was changed and the other values are meaningless); the rest
+        are rew[0], term[0], k[0] and truth[0, T_ERR] after the step.
+        """
+        if len(dynamics_hash) == 0:  # (never: makes the hash a closure variable of the kernel)
+            return -2, 0.0, False, 0, 0.0
+        state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term = _views(buf)
+        bad = dyn.first_bad_action(action)
+        if bad >= 0:
+            return bad, 0.0, False, 0, 0.0
+        _step_range_one(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, 0, 1)
+        return -1, rew[0], term[0], k[0], truth[0, dyn.T_ERR]
+
+    return njit(cache=True)(step_one)
+
+
+step_one = _build()
