@@ -268,7 +268,7 @@ class BatchSim:
             self.params = np.zeros((num_envs, dyn.NP))
             self.obs = np.zeros((num_envs, obs_dim), dtype=np.float32)
             self.truth = np.zeros((num_envs, dyn.NT))
-            self.err_hist = _aligned_zeros(num_envs, config.n_steps)  # env x sample (see dynamics.step_range)
+            self.err_hist = _aligned_zeros(num_envs, config.n_steps)  # env x sample (dynamics.step_range)
             self.rew = np.zeros(num_envs)
             self.term = np.zeros(num_envs, dtype=np.bool_)
         self.conditions: list[dict | None] = [None] * num_envs
