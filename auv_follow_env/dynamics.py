@@ -31,9 +31,12 @@ Array conventions (documented column maps below):
   generator at reset; v0 settings draw nothing from it);
 * ``params`` (N, NP) float64: per-episode plant/target/current/disturbance/link parameters;
 * ``err_hist`` (N, S) float64: each env's tracking-error samples of its episode (row i, sample
-  k - 1 after step k), written 8 at a time from the staging columns R_ESTAGE.. of ``proc``, and
-  at once when the episode ends (termination or k = n_steps): :func:`error_samples` reads
-  them at any time;
+  k - 1 after step k), written 8 at a time (one cache line) from ``err_stage``, and at once
+  when the episode ends (termination or k = n_steps): :func:`error_samples` reads them at
+  any time;
+* ``err_stage`` (N, 8) float64: each env's latest samples, sample k - 1 in column (k - 1) % 8
+  (dense, so the per-step write streams; a per-step write into err_hist itself was a cache
+  miss per env-step once autoresets had desynchronised the envs' steps);
 * ``cfg``    (NC,) float64: static configuration shared by the batch.
 
 The target link (one code path for v0 and v1). At every send time the target's present
@@ -115,10 +118,7 @@ R_TS, R_TC = 36, 46  # tone sines (36-45) and cosines (46-55) at t = R_TK * dt
 R_PSK, R_PSC, R_PSS = 56, 57, 58  # follower heading, its cos, its sin
 R_PTK, R_PTC, R_PTS = 59, 60, 61  # target heading, its cos, its sin
 R_HC, R_HS = 62, 63  # cos/sin of the held packet's heading
-# the episode's last error samples, staged in the env's own row (hot in cache) and written to
-# err_hist 8 at a time (one cache line); sample k - 1 sits in column R_ESTAGE + (k - 1) % 8
-R_ESTAGE = 64
-NR = 72
+NR = 64
 Q_MEAS, Q_ARR, Q_X = 0, 1, 2  # queue entry: measurement step, arrival step, state at 2-7
 Q_C, Q_S = 8, 9  # cos/sin of the measured heading
 NQ = 10
@@ -1056,11 +1056,11 @@ def _place_follower(state, k, proc, p, cfg, i, obs, truth):
     _observe(state, k, proc, p, cfg, i, obs, truth)
 
 
-def error_samples(err_hist, proc, i, n):
+def error_samples(err_hist, err_stage, i, n):
     """Env i's first n error samples (a copy): err_hist[i] up to the last multiple of 8,
-    the rest from its staging columns (see step_range)."""
+    the rest from err_stage[i] (see step_range)."""
     n8 = n - n % 8
-    return np.concatenate((err_hist[i, :n8], proc[i, R_ESTAGE:R_ESTAGE + n - n8]))
+    return np.concatenate((err_hist[i, :n8], err_stage[i, :n - n8]))
 
 
 @njit(cache=True)
@@ -1073,7 +1073,7 @@ def first_bad_action(action):
 
 
 @njit(cache=True, error_model="numpy")
-def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, lo, hi):
+def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action, lo, hi):
     """One control step for envs lo..hi-1 (actions assumed finite; see :func:`step_kernel`).
 
     Block by block: actions and thrusters per env, the RK4 step for the block's envs at
@@ -1129,7 +1129,7 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, ter
             ks = k[i] - 1  # this sample's index, and its place in the staging columns
             slot = ks & 7
             if ks < err_hist.shape[1]:
-                proc[i, R_ESTAGE + slot] = err
+                err_stage[i, slot] = err
             finite = True
             for c in range(9):
                 if not math.isfinite(state[i, c]):
@@ -1146,28 +1146,28 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, ter
             term[i] = done
             if ks < err_hist.shape[1] and (slot == 7 or done or k[i] >= nsteps):
                 for c in range(slot + 1):
-                    err_hist[i, ks - slot + c] = proc[i, R_ESTAGE + c]
+                    err_hist[i, ks - slot + c] = err_stage[i, c]
 
 
 @njit(cache=True)
-def step_kernel(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action):
+def step_kernel(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action):
     """One control step for every env of the batch.
 
     ``action`` is flat, length 3N, in [-1, 1] (clipped here) and scaled by the force
     limits. Returns -1, or the index of the first env whose action is not finite, in which
     case nothing at all was changed. Writes obs, truth, reward and termination flags, and
-    the error sample k - 1 of env i into err_hist[i] (through the staging columns of proc:
-    complete up to a multiple of 8 samples, and entirely once the episode has ended).
+    the error sample k - 1 of env i into err_hist[i] (through err_stage: complete up to a
+    multiple of 8 samples, and entirely once the episode has ended).
     """
     bad = first_bad_action(action)
     if bad >= 0:
         return bad
-    step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, 0, state.shape[0])
+    step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action, 0, state.shape[0])
     return -1
 
 
 @njit(cache=True, parallel=True)
-def step_kernel_parallel(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, chunks):
+def step_kernel_parallel(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action, chunks):
     """:func:`step_kernel` on numba's threads: one parallel region per step, ``chunks``
     contiguous slices of the batch (multiples of BLOCK envs) in a ``prange`` loop.
 
@@ -1184,5 +1184,5 @@ def step_kernel_parallel(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist
         lo = min(n, (c * nblk // chunks) * BLOCK)
         hi = min(n, ((c + 1) * nblk // chunks) * BLOCK)
         if hi > lo:
-            step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, lo, hi)
+            step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action, lo, hi)
     return -1

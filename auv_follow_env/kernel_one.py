@@ -15,7 +15,7 @@ Same operations in the same order: results are bit-identical to the vector env's
 
 Buffer layout (float64 slots): a header (queue capacity, observation length, history length and
 offset), then cfg, state, k (int64), rs (uint64), proc, params, truth, rew, term (bool), obs
-(float32, up to 20), queue, err_hist (from a 64-byte boundary).
+(float32, up to 20), err_stage, queue, err_hist (from a 64-byte boundary).
 """
 
 from __future__ import annotations
@@ -46,12 +46,13 @@ O_TR = O_PAR + _NP
 O_REW = O_TR + _NT
 O_TERM = O_REW + 1
 O_OBS = O_TERM + 1
-O_Q = O_OBS + _OBS_SLOTS
+O_STG = O_OBS + _OBS_SLOTS  # err_stage (8 samples)
+O_Q = O_STG + 8
 
 
 def packed_arrays(q: int, d: int, h: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """(buffer, arrays): zeroed one-env arrays of BatchSim (state, k, proc, queue, rs, params,
-    cfg, obs, truth, err_hist, rew, term) with their usual shapes and dtypes, all views of
+    cfg, obs, truth, err_hist, err_stage, rew, term) with their usual shapes and dtypes, all views of
     ``buffer``; ``q`` the queue capacity, ``d`` the observation length, ``h`` the steps of an
     episode (err_hist columns)."""
     if not 0 < d <= 2 * _OBS_SLOTS:
@@ -73,6 +74,7 @@ def packed_arrays(q: int, d: int, h: int) -> tuple[np.ndarray, dict[str, np.ndar
         "obs": buf[O_OBS:O_OBS + _OBS_SLOTS].view(np.float32)[:d].reshape(1, d),
         "truth": buf[O_TR:O_TR + _NT].reshape(1, _NT),
         "err_hist": buf[o_e:o_e + h].reshape(1, h),
+        "err_stage": buf[O_STG:O_STG + 8].reshape(1, 8),
         "rew": buf[O_REW:O_REW + 1],
         "term": buf[O_TERM:O_TERM + 1].view(np.bool_)[:1],
     }
@@ -107,7 +109,8 @@ def _views(buf):
             carray(_address(buf, O_RS), 1, np.uint64), carray(_address(buf, O_PAR), (1, _NP), f8),
             carray(_address(buf, O_CFG), _NC, f8), carray(_address(buf, O_OBS), (1, d), np.float32),
             carray(_address(buf, O_TR), (1, _NT), f8), carray(_address(buf, o_e), (1, h), f8),
-            carray(_address(buf, O_REW), 1, f8), carray(_address(buf, O_TERM), 1, np.bool_))
+            carray(_address(buf, O_STG), (1, 8), f8), carray(_address(buf, O_REW), 1, f8),
+            carray(_address(buf, O_TERM), 1, np.bool_))
 
 
 @njit(inline="always")
@@ -160,11 +163,12 @@ def _build():
         """
         if len(dynamics_hash) == 0:  # (never: makes the hash a closure variable of the kernel)
             return -2, 0.0, False, 0, 0.0
-        state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term = _views(buf)
+        state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term = _views(buf)
         bad = dyn.first_bad_action(action)
         if bad >= 0:
             return bad, 0.0, False, 0, 0.0
-        _step_range_one(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, rew, term, action, 0, 1)
+        _step_range_one(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action,
+                        0, 1)
         return -1, rew[0], term[0], k[0], truth[0, dyn.T_ERR]
 
     return njit(cache=True)(step_one)

@@ -269,6 +269,7 @@ class BatchSim:
             self.obs = np.zeros((num_envs, obs_dim), dtype=np.float32)
             self.truth = np.zeros((num_envs, dyn.NT))
             self.err_hist = _aligned_zeros(num_envs, config.n_steps)  # env x sample (dynamics.step_range)
+            self.err_stage = np.zeros((num_envs, 8))  # the latest samples, 8 per env
             self.rew = np.zeros(num_envs)
             self.term = np.zeros(num_envs, dtype=np.bool_)
         self.conditions: list[dict | None] = [None] * num_envs
@@ -297,7 +298,8 @@ class BatchSim:
     def step_call(self) -> tuple:
         """(kernel, leading args) so a hot loop can call ``kernel(*args, action_flat)``."""
         return (dyn.step_kernel, (self.state, self.k, self.proc, self.queue, self.rs, self.params, self.cfg,
-                                  self.obs, self.truth, self.err_hist, self.rew, self.term))
+                                  self.obs, self.truth, self.err_hist, self.err_stage, self.rew,
+                                  self.term))
 
     def step_one_call(self) -> tuple:
         """(kernel, buffer) of a packed sim: ``kernel(buffer, action)`` is one step, returning
@@ -316,4 +318,4 @@ class BatchSim:
     def errors(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """(errors, times) recorded so far in env i's episode (post-step samples)."""
         n = min(int(self.k[i]), self.config.n_steps)
-        return dyn.error_samples(self.err_hist, self.proc, i, n), self.sample_times[:n]
+        return dyn.error_samples(self.err_hist, self.err_stage, i, n), self.sample_times[:n]

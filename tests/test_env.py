@@ -25,7 +25,7 @@ N_STEPS = 1200
 
 def _sim_snapshot(env) -> dict[str, np.ndarray]:
     sim = env.unwrapped._sim
-    names = ("state", "k", "proc", "queue", "rs", "params", "obs", "truth", "err_hist", "rew", "term")
+    names = ("state", "k", "proc", "queue", "rs", "params", "obs", "truth", "err_hist", "err_stage", "rew", "term")
     snap = {n: getattr(sim, n).copy() for n in names}
     snap["rng"] = env.unwrapped.np_random.bit_generator.state
     return snap

@@ -16,7 +16,7 @@ from auv_follow_env.kernel_one import packed_arrays, step_one
 from auv_follow_env.sim import BatchSim
 from auv_follow_env.tiers import TIER_NAMES, make_env_config
 
-ARRAYS = ("state", "k", "proc", "queue", "rs", "params", "cfg", "obs", "truth", "err_hist", "rew", "term")
+ARRAYS = ("state", "k", "proc", "queue", "rs", "params", "cfg", "obs", "truth", "err_hist", "err_stage", "rew", "term")
 IDX0 = np.zeros(1, dtype=np.int64)
 
 CONFIGS = ([(f"S{i}", {}) for i in range(1, 5)]
