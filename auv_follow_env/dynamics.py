@@ -157,24 +157,18 @@ def uniform01(rs, i):
 
 
 @njit(cache=True)
-def normal01(rs, proc, i, fast=False):
-    """A standard normal deviate (Box-Muller; the pair's second value is cached in proc).
-    ``fast`` (fast_math): the angle's sin/cos by :func:`fast_sincos` (the log stays libm)."""
+def normal01(rs, proc, i):
+    """A standard normal deviate (Box-Muller; the pair's second value is cached in proc)."""
     if proc[i, R_GAUSS_HAS] != 0.0:
         proc[i, R_GAUSS_HAS] = 0.0
         return proc[i, R_GAUSS]
     u1 = 1.0 - uniform01(rs, i)  # (0, 1]
     u2 = uniform01(rs, i)
     rad = math.sqrt(-2.0 * math.log(u1))
-    a = 2.0 * math.pi * u2  # in [0, 2 pi): within fast_sincos' range
-    if fast:
-        sa, ca = fast_sincos(a)
-    else:
-        sa = math.sin(a)
-        ca = math.cos(a)
-    proc[i, R_GAUSS] = rad * sa
+    a = 2.0 * math.pi * u2
+    proc[i, R_GAUSS] = rad * math.sin(a)
     proc[i, R_GAUSS_HAS] = 1.0
-    return rad * ca
+    return rad * math.cos(a)
 
 
 @njit(cache=True)
@@ -187,11 +181,11 @@ def draw_uniforms(rs, n):
 
 
 @njit(cache=True)
-def draw_normals(rs, proc, n, fast=False):
-    """``n`` standard normals from env 0's generator (for tests; ``fast``: as with fast_math)."""
+def draw_normals(rs, proc, n):
+    """``n`` standard normals from env 0's generator (for tests)."""
     out = np.empty(n)
     for j in range(n):
-        out[j] = normal01(rs, proc, 0, fast)
+        out[j] = normal01(rs, proc, 0)
     return out
 
 
@@ -636,44 +630,37 @@ def _load_random_forcing(proc, i, wk, b):
 
 
 @njit(cache=True)
-def _gm(x, a, std, rs, proc, i, fast=False):
+def _gm(x, a, std, rs, proc, i):
     """One exact step of a stationary Gauss-Markov (OU) process with per-step decay a."""
-    return a * x + math.sqrt(1.0 - a * a) * std * normal01(rs, proc, i, fast)
+    return a * x + math.sqrt(1.0 - a * a) * std * normal01(rs, proc, i)
 
 
 @njit(cache=True, inline="always")
-def update_processes(proc, rs, p, i, fast=False):
-    """Advance env i's random processes by one control step (draws only where a std > 0).
-    ``fast`` (fast_math): the normals' and the current's sin/cos by :func:`fast_sincos`."""
+def update_processes(proc, rs, p, i):
+    """Advance env i's random processes by one control step (draws only where a std > 0)."""
     if p[i, P_OUU_STD] > 0.0:
-        proc[i, R_OUU] = _gm(proc[i, R_OUU], p[i, P_OUU_A], p[i, P_OUU_STD], rs, proc, i, fast)
+        proc[i, R_OUU] = _gm(proc[i, R_OUU], p[i, P_OUU_A], p[i, P_OUU_STD], rs, proc, i)
     if p[i, P_OUR_STD] > 0.0:
-        proc[i, R_OUR] = _gm(proc[i, R_OUR], p[i, P_OUR_A], p[i, P_OUR_STD], rs, proc, i, fast)
+        proc[i, R_OUR] = _gm(proc[i, R_OUR], p[i, P_OUR_A], p[i, P_OUR_STD], rs, proc, i)
     moved = False
     if p[i, P_CS_STD] > 0.0:
-        proc[i, R_CSX] = _gm(proc[i, R_CSX], p[i, P_CS_A], p[i, P_CS_STD], rs, proc, i, fast)
+        proc[i, R_CSX] = _gm(proc[i, R_CSX], p[i, P_CS_A], p[i, P_CS_STD], rs, proc, i)
         moved = True
     if p[i, P_CD_STEP] > 0.0:
-        proc[i, R_CDIR] += p[i, P_CD_STEP] * normal01(rs, proc, i, fast)
+        proc[i, R_CDIR] += p[i, P_CD_STEP] * normal01(rs, proc, i)
         moved = True
     if moved:
-        _current_vector(proc, p, i, fast)
+        _current_vector(proc, p, i)
     for c in range(3):
         if p[i, P_DN + c] > 0.0:
-            proc[i, R_DN + c] = _gm(proc[i, R_DN + c], p[i, P_DN_A], p[i, P_DN + c], rs, proc, i, fast)
+            proc[i, R_DN + c] = _gm(proc[i, R_DN + c], p[i, P_DN_A], p[i, P_DN + c], rs, proc, i)
 
 
 @njit(cache=True)
-def _current_vector(proc, p, i, fast=False):
+def _current_vector(proc, p, i):
     sp = max(0.0, p[i, P_CS_MEAN] + proc[i, R_CSX])
-    d = proc[i, R_CDIR]  # (a random walk: |d| can exceed fast_sincos' range only after ~1e10 steps)
-    if fast and abs(d) <= FAST_TRIG_MAX:
-        s, c = fast_sincos(d)
-    else:
-        c = math.cos(d)
-        s = math.sin(d)
-    proc[i, R_CGX] = sp * c
-    proc[i, R_CGY] = sp * s
+    proc[i, R_CGX] = sp * math.cos(proc[i, R_CDIR])
+    proc[i, R_CGY] = sp * math.sin(proc[i, R_CDIR])
 
 
 @njit(cache=True, inline="always")
@@ -1117,7 +1104,7 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stag
             for c in range(9):
                 state[i, c] = wk[_ix(K_ST + c, b)]
             k[i] += 1
-            update_processes(proc, rs, p, i, fast)
+            update_processes(proc, rs, p, i)
         refresh_trig_block(k, proc, cfg, a, m, wk, fast)  # the new step's libm values, used from here on
         for b in range(m):
             i = a + b

@@ -141,8 +141,7 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ``fast_math`` (default ``False``, on every id): compute the sin/cos of each step (the ten
     tones, both headings at every substep and the observation's relative heading: all 15
-    sin/cos pairs of a v0 step; in v1 also the angles of the processes' Box-Muller normals and
-    the current's direction, whose logs and resets keep libm) with a branch-free polynomial
+    sin/cos pairs of a v0 step; v1's random draws keep libm) with a branch-free polynomial
     (:func:`~auv_follow_env.dynamics.fast_sincos`, within 1 ULP) in SIMD loops instead of
     glibc's scalar libm calls. Faster (results/bench_vector.md), but not bit-identical to the
     default: about 3 % of the values differ in their last bit, so trajectories differ from

@@ -148,19 +148,3 @@ def test_fast_math_must_be_a_bool(bad):
 def test_default_is_libm():
     assert AUVFollowVectorEnv(num_envs=2).fast_math is False
     assert gym.make("AUVFollow-Hard-v1").unwrapped.fast_math is False
-
-
-def test_fast_math_normals_differ_from_libm_by_rounding_only():
-    """v1's Box-Muller angles use fast_sincos with fast_math: the same uniforms, so every
-    normal equals the libm one to within 2 ULP of the pair's radius (the log is libm in both)."""
-    n = 20_000
-    out = []
-    for fast in (False, True):
-        rs = np.array([np.uint64(12345)])
-        proc = np.zeros((1, dyn.NR))
-        out.append(dyn.draw_normals(rs, proc, n, fast))
-    exact, fast = out
-    assert np.isfinite(exact).all() and abs(exact.mean()) < 0.03 and abs(exact.std() - 1.0) < 0.02
-    rad = np.hypot(exact[0::2], exact[1::2]).repeat(2)  # each pair shares its radius
-    assert (np.abs(fast - exact) <= 2 * np.spacing(rad)).all()
-    assert 0 < np.count_nonzero(fast != exact) < n // 10
