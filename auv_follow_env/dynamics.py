@@ -1113,7 +1113,7 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stag
             a2 = min(1.0, max(-1.0, float(action[3 * i + 2])))
             link_tick(state, proc, queue, rs, p, cfg, i, k[i])
             err = _observe(state, k, proc, p, cfg, i, obs, truth)
-            ks = k[i] - 1  # this sample's index, and its place in the staging columns
+            ks = k[i] - 1  # this sample's index, and its column in err_stage
             slot = ks & 7
             if ks < err_hist.shape[1]:
                 err_stage[i, slot] = err

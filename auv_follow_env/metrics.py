@@ -79,7 +79,7 @@ def batch_tracking_metrics(errors: np.ndarray, times: np.ndarray, steady_start: 
     return {key: out[key] for key in METRIC_KEYS}
 
 
-# --- compiled: the metrics of many episodes straight from the (steps x envs) error history -----
+# --- compiled: the metrics of many episodes straight from the (envs x steps) error history -----
 _PW_BLOCK = 128  # numpy's pairwise-summation block (PW_BLOCKSIZE)
 
 
