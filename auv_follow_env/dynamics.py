@@ -381,7 +381,7 @@ def rk4_lane(x, y, ps, u, v, r, xt, yt, pt, c0, s0, ct, st, h, fu, fv, fr, m, iz
 # changing their results) sit in loops of their own. Every env still goes through exactly
 # the same floating-point operations in the same order as a scalar per-env loop would, so
 # the results do not depend on the block size or on the lane.
-BLOCK = 32  #: envs per block (the work buffer: NK rows of BLOCK doubles, 35 KB, in L1/L2; 16 measured no faster)
+BLOCK = 32  #: envs per block (the work buffer: NK rows of BLOCK doubles, 37 KB, in L1/L2; 16 measured no faster)
 
 #: parameter columns gathered into a block (rows K_PP.. of the buffer), in this order
 _PP_COLS = np.array([P_M, P_IZ, P_XU, P_YV, P_NR,
@@ -407,7 +407,18 @@ K_F0, K_FM, K_F1 = 101, 108, 115  # forcing at the substep's start, midpoint, en
 K_C0, K_S0, K_CT, K_STT = 122, 123, 124, 125  # cos/sin of the follower's and the target's heading
 K_OUT = 126  # new state, rows 126-134
 K_BIG = 135  # lane flag: an increment exceeded SMALL_ANGLE
-NK = 136
+K_DK = 136  # the ten tones' half-substep angles omega * h / 2 whose cos/sin rows K_RC.., K_RS..
+#   hold (NaN: none yet), rows 136-145: the rotation factors are recomputed only where it changed
+NK = 146
+
+
+@njit(cache=True, inline="always")
+def work_buffer(zeroed):
+    """A block's work buffer (NK rows of BLOCK doubles): uninitialised (every row a lane reads is
+    written first) or zeroed, with the rotation-factor keys (rows K_DK..) NaN."""
+    wk = np.zeros(NK * BLOCK) if zeroed else np.empty(NK * BLOCK)
+    wk[K_DK * BLOCK:(K_DK + 10) * BLOCK] = np.nan
+    return wk
 
 
 _ZERO7 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -447,12 +458,12 @@ def _sincos_rows(wk, src, sin_row, cos_row, m, fast):
 
 @njit(cache=True, inline="always")
 def _tone_values(wk, m, fast):
-    """sin/cos of the ten tones at each lane's time (row K_T0) into rows K_S.., K_C.. (the
-    rotation rows K_RC.. hold the arguments meanwhile)."""
+    """sin/cos of the ten tones at each lane's time (row K_T0) into rows K_S.., K_C.. (row K_OUT,
+    free outside the RK4 step, holds each tone's arguments meanwhile)."""
     for j in range(10):
         for b in range(m):
-            wk[_ix(K_RC + j, b)] = wk[_ix(K_OM + j, b)] * wk[_ix(K_T0, b)] + wk[_ix(K_PH + j, b)]
-        _sincos_rows(wk, K_RC + j, K_S + j, K_C + j, m, fast)
+            wk[_ix(K_OUT, b)] = wk[_ix(K_OM + j, b)] * wk[_ix(K_T0, b)] + wk[_ix(K_PH + j, b)]
+        _sincos_rows(wk, K_OUT, K_S + j, K_C + j, m, fast)
 
 
 @njit(cache=True, inline="always")
@@ -532,6 +543,38 @@ def _rk4_block_lane(wk, h, b, exact):
                     _load7(wk, K_F0, b), _load7(wk, K_FM, b), _load7(wk, K_F1, b), exact)
 
 
+@njit(cache=True, inline="always")
+def _rotation_factors(wk, hh, m):
+    """cos/sin of each tone's half-substep angle omega * hh into rows K_RC.., K_RS..: small-angle
+    polynomials, libm for the lanes beyond SMALL_ANGLE. A tone's row is recomputed only if some
+    lane's angle differs from the one its rows hold (keys in rows K_DK..; the same angle with
+    the same sign gives the same values, so reuse changes no result). The tone frequencies
+    that are constants of the config (the disturbance tones, in v0 the target's) then cost a
+    compare per step instead of a polynomial with eleven divisions."""
+    for j in range(10):
+        ndiff = 0
+        for b in range(m):
+            d = wk[_ix(K_OM + j, b)] * hh
+            key = wk[_ix(K_DK + j, b)]
+            ndiff += (d != key) | (math.copysign(1.0, d) != math.copysign(1.0, key))  # (NaN: differs)
+        if ndiff:
+            nbig = 0
+            for b in range(m):
+                d = wk[_ix(K_OM + j, b)] * hh
+                rc, rsn = cos_sin_small(d, False)
+                wk[_ix(K_RC + j, b)] = rc
+                wk[_ix(K_RS + j, b)] = rsn
+                wk[_ix(K_DK + j, b)] = d
+                nbig += abs(d) > SMALL_ANGLE
+            if nbig:
+                for b in range(m):
+                    d = wk[_ix(K_OM + j, b)] * hh
+                    if abs(d) > SMALL_ANGLE:
+                        rc, rsn = cos_sin_small(d, True)
+                        wk[_ix(K_RC + j, b)] = rc
+                        wk[_ix(K_RS + j, b)] = rsn
+
+
 @njit(cache=True, error_model="numpy")
 def advance_block(wk, dt, nsub, m, pre, fast=False):
     """Advance the m lanes of a block by dt from their times (row K_T0) in nsub RK4
@@ -545,21 +588,8 @@ def advance_block(wk, dt, nsub, m, pre, fast=False):
     h = dt / nsub
     hh = 0.5 * h
     if not pre:
-        _tone_values(wk, m, fast)  # (before the rotation rows K_RC.. are filled below)
-    nbig = 0
-    for j in range(10):
-        for b in range(m):
-            d = wk[_ix(K_OM + j, b)] * hh
-            rc, rsn = cos_sin_small(d, False)
-            wk[_ix(K_RC + j, b)] = rc
-            wk[_ix(K_RS + j, b)] = rsn
-            nbig += abs(d) > SMALL_ANGLE
-    if nbig:
-        for j in range(10):
-            for b in range(m):
-                rc, rsn = cos_sin_small(wk[_ix(K_OM + j, b)] * hh, True)
-                wk[_ix(K_RC + j, b)] = rc
-                wk[_ix(K_RS + j, b)] = rsn
+        _tone_values(wk, m, fast)
+    _rotation_factors(wk, hh, m)
     for b in range(m):
         _forcing_lane(wk, K_S, K_F1, b)
     for sub in range(nsub):
@@ -605,7 +635,7 @@ def integrate(state, p, cfg, t0, forces, fast=False):
     n = state.shape[0]
     nsub = int(cfg[C_NSUB])
     dt = cfg[C_DT]
-    wk = np.empty(NK * BLOCK)  # every row a lane reads is written first
+    wk = work_buffer(False)
     for a in range(0, n, BLOCK):
         m = min(BLOCK, n - a)
         gather_block(state, p, a, m, wk)
@@ -994,7 +1024,7 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
     W = int(cfg[C_WARM])
     dt = cfg[C_DT]
     nsub = int(cfg[C_NSUB])
-    wk = np.zeros(NK * BLOCK)  # forces stay 0 in the warm-up (the follower is placed below)
+    wk = work_buffer(True)  # forces stay 0 in the warm-up (the follower is placed below)
     for n0 in range(0, idx.shape[0], BLOCK):  # the warm-up of up to BLOCK envs at once
         m = min(BLOCK, idx.shape[0] - n0)
         for b in range(m):
@@ -1075,7 +1105,7 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stag
     nsteps = int(cfg[C_NSTEPS])
     effort = cfg[C_EFFORT]
     fast = cfg[C_FAST] != 0.0
-    wk = np.empty(NK * BLOCK)  # every row a lane reads is written first
+    wk = work_buffer(False)
     for a in range(lo, hi, BLOCK):
         m = min(BLOCK, hi - a)
         gather_block(state, p, a, m, wk)

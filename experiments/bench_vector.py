@@ -184,7 +184,7 @@ def _refresh_all(state, k, proc, p, cfg, reps):
 def _refresh_block_all(state, k, proc, p, cfg, reps, fast):
     """refresh_trig_block over the batch (as step_range runs it; ``fast``: fast_math's SIMD sin/cos)."""
     n = state.shape[0]
-    wk = np.zeros(dyn.NK * dyn.BLOCK)
+    wk = dyn.work_buffer(True)
     for _ in range(reps):
         for a in range(0, n, dyn.BLOCK):
             m = min(dyn.BLOCK, n - a)
@@ -204,7 +204,7 @@ def _observe_all(state, k, proc, p, cfg, obs, truth, reps):
 def _advance_cached(state, k, proc, p, cfg, forces, reps):
     """The block RK4 of the step from the cached start values (as step_range runs it)."""
     n = state.shape[0]
-    wk = np.zeros(dyn.NK * dyn.BLOCK)
+    wk = dyn.work_buffer(True)
     for _ in range(reps):
         for a in range(0, n, dyn.BLOCK):
             m = min(dyn.BLOCK, n - a)
@@ -282,8 +282,12 @@ def op_count(nsub: int) -> dict[str, dict[str, int]]:
     per_sub = (2 * 10 * 6 + 2 * 20  # two half-substep rotations of ten tones, two forcings
                + 4 * 31 + 3 * 6 + 3 + 6 * (taylor + 6) + 9 * 6 + 4)  # RK4 stages, turns, combination
     div_sub = 4 * 3 + 6 * taylor_div + 1
-    tones = 10 * 2 + 10 * (taylor + 1)  # arguments, rotation factors
-    kernel = {"flops": tones + nsub * per_sub, "divisions": 10 * taylor_div + nsub * div_sub,
+    # arguments; each tone's rotation-factor key compared (a product, two compares); the factors
+    # recomputed for the two current tones only (their periods are drawn per episode; the other
+    # eight frequencies are constants of the config, reused from the previous block)
+    fresh = 2
+    tones = 10 * 2 + 10 * 3 + fresh * (taylor + 1)
+    kernel = {"flops": tones + nsub * per_sub, "divisions": fresh * taylor_div + nsub * div_sub,
               "libm": 20 + 4 * nsub}
     step = {"flops": kernel["flops"] + 80, "divisions": kernel["divisions"] + 1,
             "libm": 20 + 4 * (nsub - 1) + 4 + 2}  # tones, headings (cached at the step's start), psd - psi

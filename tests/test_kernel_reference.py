@@ -78,3 +78,44 @@ def test_reference_uses_the_nominal_vehicle_shape():
     # guard: the parameter row carries the true (mismatched) damping, not the nominal one
     p = sample_params(make_config("S4"), np.random.default_rng(0))
     assert p[dyn.P_XU] == pytest.approx(NOMINAL_VEHICLE.X_u * 2.05)
+
+
+def test_tone_rotation_factors_reused_only_for_the_same_angle():
+    # The block kernel keeps each lane's tone rotation factors (cos/sin of omega * h / 2) and
+    # recomputes a tone's row only when some lane's omega changed. Mix, over three blocks of
+    # envs: tone frequencies shared by every env, frequencies that change from block to block
+    # or lane to lane, a frequency of 0 (and -0), and frequencies fast enough that the angle
+    # exceeds SMALL_ANGLE (libm path). Every env stepped in the batch must equal the same env
+    # stepped alone (a fresh work buffer: nothing to reuse), bit for bit, step after step.
+    cfg_obj = make_config("S4")
+    n = 2 * dyn.BLOCK + 7
+    p = np.stack([sample_params(cfg_obj, np.random.default_rng(100 + i)) for i in range(n)])
+    hh = cfg_obj.dt / cfg_obj.physics_substeps / 2
+    fast = 1.2 * dyn.SMALL_ANGLE / hh  # [rad/s]: the angle omega * hh is beyond SMALL_ANGLE
+    assert fast * hh > dyn.SMALL_ANGLE
+    p[dyn.BLOCK:, dyn.P_TWU] = 0.8  # target surge tone: changes at the second block
+    p[5, dyn.P_TWR] = fast  # one lane of the first block on the libm path
+    p[dyn.BLOCK + 5, dyn.P_TWR] = fast  # the same lane of the second block too
+    p[2 * dyn.BLOCK:, dyn.P_CX + 2] = 0.0  # current x tone: omega 0 in the third block ...
+    p[2 * dyn.BLOCK + 1, dyn.P_CX + 2] = -0.0  # ... and -0 in one of its lanes
+    p[3, dyn.P_CY + 2] = fast
+    cfg = config_vector(cfg_obj)
+    rng = np.random.default_rng(7)
+    state = np.tile([0.3, -0.2, 2.5, 0.4, -0.1, 0.3, 1.0, 0.5, 2.2], (n, 1)) + rng.normal(0, 0.1, (n, 9))
+    alone = state.copy()
+    for k in range(30):
+        forces = rng.uniform(-60, 60, (n, 3))
+        t0 = np.full(n, 2.0 + k * cfg_obj.dt)
+        dyn.integrate(state, p, cfg, t0, forces)
+        for i in range(n):
+            row = alone[i:i + 1]
+            dyn.integrate(row, p[i:i + 1], cfg, t0[i:i + 1], forces[i:i + 1])
+        np.testing.assert_array_equal(state, alone)
+    # and the values are those of an independent RK4 (a lane on the libm path included)
+    ref = np.array([0.3, -0.2, 2.5, 0.4, -0.1, 0.3, 1.0, 0.5, 2.2])
+    one = ref[None, :].copy()
+    for k in range(20):
+        F = np.array([10.0, -5.0, 2.0])
+        dyn.integrate(one, p[5:6], cfg, np.array([k * cfg_obj.dt]), F[None, :])
+        ref = _reference_step(ref, p[5], k * cfg_obj.dt, cfg_obj.dt, cfg_obj.physics_substeps, F)
+    np.testing.assert_allclose(one[0], ref, rtol=0, atol=1e-11)
