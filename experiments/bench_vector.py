@@ -44,7 +44,7 @@ from experiments.outputs import output_path, write_report
 class Args:
     env_id: str = "AUVFollow-S4-v0"  #: the AUVFollow id benchmarked
     tier_id: str = "AUVFollow-Hard-v1"  #: the v1 id timed beside it (native, single-threaded)
-    sizes: list[int] = field(default_factory=lambda: [1, 64, 1024, 4096])  #: numbers of envs N
+    sizes: list[int] = field(default_factory=lambda: [1, 64, 256, 1024, 4096])  #: numbers of envs N
     budget: float = 1.0  #: seconds of timed stepping per cell (after one warm-up step)
     max_sync_envs: int = 4096  #: skip SyncVectorEnv above this N (building it is slow)
     out: Path = Path("results/bench_vector.md")  #: Markdown output
@@ -446,9 +446,7 @@ def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after:
               f"cost {floor:.0f} ns per env-step on one core, i.e. at most {fmt(1e9 / floor)} env-steps/s per core "
               f"before any other work. A different sin/cos (vectorised, or any other algorithm) changes about 3 % "
               f"of the values in their last bit, so the frozen v0 hashes cannot hold with one; that is why the "
-              f"SIMD path is the opt-in `fast_math`. The N = 1024 row against the N = 4096 row shows the other "
-              f"limit: at 4096 envs the per-env rows (params, processes, packet queue: about 1.7 KB per env) no "
-              f"longer fit in the core's L2 cache and each step pays memory latency."]
+              f"SIMD path is the opt-in `fast_math`. {_footprint(rows)}"]
     if prof is not None:
         p = prof
         other = p["step_kernel"] - p["advance"] - p["libm_block"] - p["observe"]
@@ -471,6 +469,21 @@ def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after:
         lines += ["", f"For comparison: the bare kernel (`integrate`, which also evaluates its own 28 libm "
                   f"values) {p['integrate']:.0f} ns."]
     return "\n".join(lines) + "\n"
+
+
+def _footprint(rows: dict[int, dict[str, float]]) -> str:
+    """What the table says about the per-env rows (params, processes, packet queue, observation,
+    truth, error staging: about 1.7 KB per env in v0) outgrowing the core's L2 cache (512 KB)."""
+    small = [n for n in rows if 64 <= n <= 256]
+    big = max(rows)
+    if not small or big < 1024:
+        return ""
+    s = max(small)
+    r1 = rows[big]["native"] / rows[s]["native"]
+    r2 = rows[big]["parallel"] / rows[s]["parallel"]
+    return (f"Memory: at N = {s} the per-env rows (about 1.7 KB per env) fit in a core's L2 cache, at N = {big} "
+            f"they do not; one thread runs at {r1:.2f}x the N = {s} rate there, both cores at {r2:.2f}x (below 1: "
+            f"the step waits for memory; at small N the Python shell's fixed cost per step weighs more).")
 
 
 def _nsub(env_id: str) -> int:
