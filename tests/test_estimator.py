@@ -347,3 +347,57 @@ def test_a_packet_held_at_the_episode_start_is_used_at_once():
     xt, yt, pt, *_ = ct_target(0.0)
     ox, oy = to_odometry(0.0, xt, yt)
     np.testing.assert_allclose([e.x[0], e.y[0], e.psi[0]], [ox, oy, pt], atol=1e-9)
+
+
+def _noisy_v1_stream(k: int) -> np.ndarray:
+    """A v1 observation at step k of two envs: fixes every 7 steps, 1.3 s old, a gap in env 1."""
+    t = k * DT
+    new = 1.0 if k % 7 == 0 else 0.0
+    rows = [observation(t, ct_target(t - 1.3), v1=(1.3 + (k % 7) * DT, (k % 7) * DT, new, 1.0)),
+            observation(t, cv_target(t - 1.3), v1=(1.3 + (k % 7) * DT, (k % 7) * DT, new, float(k < 20 or k > 30)))]
+    return np.stack(rows)
+
+
+def test_a_commit_after_a_peek_at_the_same_input_is_bit_identical_to_computing_it():
+    # reuse (peek, then commit on the same bits): every estimate and the filter's later course equal
+    # those of an estimator that never reuses (and of one that never peeks), bit for bit; a peek at
+    # other bits, with another mask or with another with_cov is not reused
+    reuse = TargetEstimator(SPEC, EstimatorConfig(model="OU"))
+    fresh = TargetEstimator(SPEC, EstimatorConfig(model="OU"))
+    fresh.reuse_peek = False
+    plain = TargetEstimator(SPEC, EstimatorConfig(model="OU"))  # never peeked
+    calls = {"n": 0}
+    advance = reuse._advance
+
+    def counted(*a):
+        calls["n"] += 1
+        return advance(*a)
+
+    reuse._advance = counted
+    for k in range(45):
+        obs = _noisy_v1_stream(k)
+        mask = np.array([k == 0, k in (0, 25)])
+        peek_obs = obs.copy()
+        if k % 5 == 3:
+            peek_obs[0, 0] += 1e-3  # the peek saw other bits
+        peek_mask = None if k not in (0, 25) else mask  # k = 0, 25: the same mask; else none (= all False)
+        if k == 40:
+            peek_mask = np.array([False, True])  # another mask: no reuse
+        cov = k % 9 != 4  # k = 4, 13, ...: the commit asks for the covariance, the peek did not
+        for est in (reuse, fresh):
+            pe = est.step(peek_obs, peek_mask, commit=False, with_cov=False)
+        ce = reuse.step(obs, mask, with_cov=not cov)
+        cf = fresh.step(obs, mask, with_cov=not cov)
+        cp = plain.step(obs, mask, with_cov=not cov)
+        for a, b in ((ce, cf), (ce, cp)):
+            for name in ("valid", "x", "y", "psi", "u", "v", "r", "rel_x", "rel_y", "rel_psi", "state", "age"):
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"{name} at k={k}")
+            assert (a.cov is None) == (b.cov is None)
+            if a.cov is not None:
+                np.testing.assert_array_equal(a.cov, b.cov)
+        assert pe is not ce  # the commit hands out its own arrays
+    # 45 peeks, and a computation at each commit that could not reuse: other bits (k % 5 == 3),
+    # another with_cov (k % 9 == 4), another mask (k = 40); all the others reused the peek
+    not_reused = {k for k in range(45) if k % 5 == 3 or k % 9 == 4 or k == 40}
+    assert len(not_reused) == 13
+    assert calls["n"] == 45 + len(not_reused)

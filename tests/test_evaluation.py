@@ -254,3 +254,20 @@ def test_progress_in_a_log_has_no_nested_bars_or_cursor_codes(capsys):
     err = capsys.readouterr().err
     assert "scenarios" in err  # the outer bar is kept
     assert "policies x" not in err and "\x1b[" not in err
+
+
+@pytest.mark.parametrize("name", ["PROPOSED_KF_DOB", "MPC"])
+def test_estimator_controllers_score_the_same_with_and_without_peek_reuse(name):
+    # evaluate_batched peeks through reference() at the observation the next predict() commits;
+    # the estimator reuses that peek. Every score must equal the run that recomputes everything.
+    import gymnasium as gym
+
+    kw = {"episode_s": 3.0, "steady_start_s": 1.0}
+    env_id = "AUVFollow-S4-v0" if name == "MPC" else "AUVFollow-Hard-v1"
+    spec = gym.make(env_id, **kw).unwrapped.task_spec
+    frames = []
+    for reuse in (True, False):
+        policy = make_controller(name, spec)
+        policy.estimator.reuse_peek = reuse
+        frames.append(evaluate_batched([policy], env_id, seeds=range(3), env_kwargs=kw, progress=False))
+    pd.testing.assert_frame_equal(frames[0], frames[1], check_exact=True)

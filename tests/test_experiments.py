@@ -282,6 +282,25 @@ def test_bench_policy_smoke(tmp_path):
         assert needle in text
 
 
+def test_bench_policy_times_an_estimator_baseline_on_a_tier(tmp_path, capsys):
+    # the estimator-based baselines on a v1 tier: the report names the controller and the env and
+    # says which of the two the batch waits for; an unknown controller is refused with the choices
+    from experiments import bench_policy
+
+    out = tmp_path / "kf.md"
+    text = bench_policy.main(["--n", "8", "--episode-s", "0.5", "--repeats", "1", "--controller", "PROPOSED_KF_DOB",
+                              "--env-id", "AUVFollow-Hard-v1", "--out", str(out)])
+    assert text.startswith("# PROPOSED_KF_DOB in the batched evaluation loop: AUVFollow-Hard-v1, N = 8, 0.5 s")
+    assert "(b) PROPOSED_KF_DOB `predict` alone" in text and "--controller PROPOSED_KF_DOB" in text
+    assert "what the batch waits for" in text or "the batch waits for the controller" in text
+    assert "Goal: evaluate_batched with PROPOSED" not in text  # that goal is PROPOSED's on S4-v0
+    with pytest.raises(SystemExit) as err:
+        bench_policy.main(["--controller", "LQR"])
+    assert err.value.code == 2
+    msg = capsys.readouterr().err
+    assert "LQR" in msg and "PROPOSED_KF_DOB" in msg
+
+
 def test_bench_vector_op_count_matches_the_kernel_structure():
     from experiments.bench_vector import op_count
 
