@@ -379,7 +379,7 @@ def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after:
            policy_fast: float = float("nan")) -> str:
     threads = numba.get_num_threads()
     lines = [f"# Vector env speed: {args.env_id} (and {args.tier_id}), env-steps/s", "",
-             f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python "
+             f"Machine: {platform.processor() or platform.machine()} ({_cpu_target()}), {os.cpu_count()} CPUs, Python "
              f"{platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}, gymnasium "
              f"{gym.__version__}; {args.budget} s per cell after a warm-up step, best of {args.repeats} "
              f"interleaved repeats; load average (1, 5, 15 min) before the run {load}, after it {load_after} "
@@ -484,6 +484,16 @@ def _footprint(rows: dict[int, dict[str, float]]) -> str:
     return (f"Memory: at N = {s} the per-env rows (about 1.7 KB per env) fit in a core's L2 cache, at N = {big} "
             f"they do not; one thread runs at {r1:.2f}x the N = {s} rate there, both cores at {r2:.2f}x (below 1: "
             f"the step waits for memory; at small N the Python shell's fixed cost per step weighs more).")
+
+
+def _cpu_target() -> str:
+    """The CPU numba compiles for and its widest SIMD (the same code runs at very different SIMD
+    rates on hosts with and without AVX-512: compare runs only on the same target)."""
+    import llvmlite.binding as llvm
+
+    feats = llvm.get_host_cpu_features()
+    simd = "AVX-512" if feats.get("avx512f") else "AVX2" if feats.get("avx2") else "SSE/other"
+    return f"numba target {llvm.get_host_cpu_name()}, {simd}"
 
 
 def _nsub(env_id: str) -> int:
