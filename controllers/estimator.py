@@ -293,8 +293,7 @@ class _FilterState:
 class _Peek:
     """A peek (``step(commit=False)``) kept for the commit that follows it on the same input."""
 
-    base: _FilterState  # the filter state the peek started from (identity)
-    version: int  # the estimator's commit count then
+    base: _FilterState  # the filter state the peek started from (identity; any commit drops the peek)
     obs: np.ndarray  # (N, W) float64, a private copy of the bits
     mask: np.ndarray  # (N,) the reset mask it applied
     with_cov: bool
@@ -332,8 +331,7 @@ class TargetEstimator:
         #: reuse a peek's result for the commit that follows it on bit-identical input (False: always
         #: recompute, e.g. to check that reuse changes nothing)
         self.reuse_peek = True
-        self._peek: _Peek | None = None
-        self._version = 0  # commits so far (a peek is reusable only before the next one)
+        self._peek: _Peek | None = None  # the last peek, dropped by the next commit
 
     def reset(self) -> None:
         """Forget all envs: the next :meth:`step` starts every env fresh."""
@@ -477,13 +475,11 @@ class TargetEstimator:
             self._peek = None
             if self.reuse_peek:
                 key = obs.copy() if np.may_share_memory(obs, observation) else obs
-                self._peek = _Peek(self._s, self._version, key, mask.copy(), with_cov, st, est)
+                self._peek = _Peek(self._s, key, mask.copy(), with_cov, st, est)
             return est
         pk, self._peek = self._peek, None
-        self._version += 1
-        if (self.reuse_peek and pk is not None and pk.base is self._s and pk.version == self._version - 1
-                and pk.with_cov == with_cov and pk.obs.shape == obs.shape and np.array_equal(pk.mask, mask)
-                and np.array_equal(pk.obs.view(np.int64), obs.view(np.int64))):
+        if (self.reuse_peek and pk is not None and pk.base is self._s and pk.with_cov == with_cov
+                and np.array_equal(pk.mask, mask) and np.array_equal(pk.obs.view(np.int64), obs.view(np.int64))):
             self._s = pk.state
             return _copy_estimate(pk.estimate)
         self._advance(self._s, o, mask)

@@ -173,10 +173,10 @@ def run(args: Args) -> dict[str, Any]:
     T = spec.n_steps
     obs = fixed_batch(venv, args.controller, spec, args.n)  # also the env's warm-up (compilation of its kernels)
     time_predict(args.controller, spec, obs, 2)  # warm-up
-    evaluate_batched([make_controller(args.controller, spec)], args.env_id, seeds=range(min(args.n, 8)),
-                     env_kwargs=kw, progress=False)
+    warm = make_controller(args.controller, spec)
+    evaluate_batched([warm], args.env_id, seeds=range(min(args.n, 8)), env_kwargs=kw, progress=False)
     best = {"env": np.inf, "predict": np.inf, "evaluate": np.inf}
-    has_estimator = getattr(make_controller(args.controller, spec), "estimator", None) is not None
+    has_estimator = getattr(warm, "estimator", None) is not None
     if has_estimator:
         best["evaluate_noreuse"] = np.inf
     env_steps = args.n * T
