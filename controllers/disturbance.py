@@ -16,6 +16,14 @@ and low-pass filters it, ``d_hat += dt / (T_d + dt) (d_meas - d_hat)``. The law 
 ``-d_hat`` to (32)-(34). A constant ``d`` is removed exactly (zero steady velocity error):
 at rest ``d_meas`` equals ``d``.
 
+**Thrusters.** On the v1 tiers the thrusters lag the command (first order, time constant
+T_th) and are rate limited; the force that acts over a step is then not the command. Given
+``thruster_tc_s`` and ``thruster_rate`` (the follower knows its own thrusters; the task spec
+carries them), the observer runs the same thruster model on the commands it is told and
+uses its output as the applied force, as the plant does:
+``f_k = f_{k-1} + (1 - e^{-dt/T_th}) (c_k - f_{k-1})``, clipped to ``f_{k-1} +- rate * limit * dt``,
+``c_k`` the command clipped to the limits, ``f = 0`` at an episode's start.
+
 **Anti-windup.** The observer never sees the unclipped command, only the applied force, so it
 keeps estimating the true ``d`` while the actuators saturate (no integrator state runs away);
 ``d_hat`` itself is clamped to the force limits.
@@ -40,10 +48,12 @@ class DisturbanceObserver:
         dt: control step [s].
         force_limits: (F_u [N], F_v [N], F_r [N m]) of the actuators.
         time_constant: T_d of the low-pass filter [s] (> 0).
+        thruster_tc_s: the thrusters' first-order lag [s] (0: none).
+        thruster_rate: their rate limit, fraction of the force limit per second (inf: none).
     """
 
     def __init__(self, nominal: VehicleParams, dt: float, force_limits: tuple[float, float, float],
-                 time_constant: float = 0.5) -> None:
+                 time_constant: float = 0.5, thruster_tc_s: float = 0.0, thruster_rate: float = math.inf) -> None:
         if not isinstance(nominal, VehicleParams):
             raise ValueError(f"nominal={nominal!r} is invalid: must be an auv_follow_env VehicleParams")
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
@@ -53,6 +63,12 @@ class DisturbanceObserver:
         lim = np.asarray(force_limits, dtype=np.float64)
         if lim.shape != (3,) or not np.all(np.isfinite(lim) & (lim > 0)):
             raise ValueError(f"force_limits={force_limits!r} is invalid: must be three finite numbers > 0")
+        if not (isinstance(thruster_tc_s, (int, float)) and math.isfinite(thruster_tc_s) and thruster_tc_s >= 0):
+            raise ValueError(f"thruster_tc_s={thruster_tc_s!r} is invalid: must be a finite number >= 0 [s]")
+        if not (isinstance(thruster_rate, (int, float)) and not math.isnan(thruster_rate) and thruster_rate > 0):
+            raise ValueError(f"thruster_rate={thruster_rate!r} is invalid: must be a number > 0 (inf: no limit) [1/s]")
+        self.alpha = 1.0 - math.exp(-dt / thruster_tc_s) if thruster_tc_s > 0 else 1.0
+        self.rate_step = float(thruster_rate) * dt * lim  # max change of the applied force per step
         self.nominal = nominal
         self.dt = float(dt)
         self.limits = lim
@@ -89,9 +105,20 @@ class DisturbanceObserver:
         self.d_hat = np.clip(self.d_hat + self.gain * (d_meas - self.d_hat), -self.limits, self.limits)
         r = np.asarray(reset_mask, dtype=bool)
         self.d_hat[r] = 0.0
+        self._f[r] = 0.0  # the thrusters start an episode at rest
         self._nu, self._n = nu.copy(), nm
         return self.d_hat.copy()
 
+    @property
+    def models_thrusters(self) -> bool:
+        return self.alpha < 1.0 or bool(np.all(np.isfinite(self.rate_step)))
+
     def applied(self, command: np.ndarray) -> None:
-        """Record this step's command (N, 3) [N, N, N m]; the observer keeps it clipped to the limits."""
-        self._f = np.clip(np.asarray(command, dtype=np.float64), -self.limits, self.limits)
+        """Record this step's command (N, 3) [N, N, N m]: the observer keeps it clipped to the limits
+        and, with a thruster model, passes it through the thrusters' lag and rate limit."""
+        c = np.clip(np.asarray(command, dtype=np.float64), -self.limits, self.limits)
+        if not self.models_thrusters or self._f is None or self._f.shape != c.shape:
+            self._f = c
+            return
+        new = self._f + self.alpha * (c - self._f)
+        self._f = np.clip(new, self._f - self.rate_step, self._f + self.rate_step)

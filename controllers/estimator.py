@@ -30,7 +30,7 @@ with no retrodiction.
 | ``CT`` | x, y, psi, u, v, r | constant body velocity and turn rate (coordinated turn) | u, v (q_acc), r (q_yaw) |
 | ``CTA`` | CT + a, alpha | CT, constant accelerations a = u', alpha = r' | as CT; a (q_jerk), alpha (q_yaw_acc) |
 | ``OU`` | CT + u_bar | u reverts to u_bar (time constant tau_u), r to 0 (tau_r) | u, v (q_acc), r (q_yaw) |
-| ``OU0`` | x, y, psi, u, r, u_bar | OU as above with no sway (v = 0: the target does not slip sideways) | u (q_acc), r (q_yaw) |
+| ``OU0`` | x, y, psi, u, r, u_bar | OU with no sway (v = 0: the target does not slip sideways) | u (q_acc), r (q_yaw) |
 
 OU is the v1 tiers' own target model (Ornstein-Uhlenbeck surge speed about an unknown mean
 u_bar and turn rate about 0): over a long gap between fixes its prediction relaxes to a

@@ -33,8 +33,9 @@ from controllers import DOB_TIME_CONSTANT, DisturbanceObserver, Gains, Hierarchi
 from controllers.estimator import EstimatorConfig, TargetEstimator
 from experiments.outputs import output_path, write_report
 
-#: name -> (estimator config changes applied to EstimatorConfig.for_spec, K_p)
-VARIANTS: dict[str, tuple[dict, float]] = {
+#: name -> (estimator config changes applied to EstimatorConfig.for_spec, K_p[, the disturbance observer
+#: models the tier's thrusters])
+VARIANTS: dict[str, tuple] = {
     "OU": ({"model": "OU", "adapt": False, "smooth_s": 0.0}, 1.0),
     "OU0": ({"adapt": False, "smooth_s": 0.0}, 1.0),
     "OU0+Kp2": ({"adapt": False, "smooth_s": 0.0}, 2.0),
@@ -43,7 +44,9 @@ VARIANTS: dict[str, tuple[dict, float]] = {
     "OU0+Kp3": ({"adapt": False, "smooth_s": 0.0}, 3.0),
     "OU0+Kp3+s0.2": ({"adapt": False, "smooth_s": 0.2}, 3.0),
     "OU0+Kp4": ({"adapt": False, "smooth_s": 0.0}, 4.0),
-    "OU0+adapt+Kp3": ({"adapt": True, "smooth_s": 0.0}, 3.0),
+    "OU0+Kp2+thr": ({"adapt": False, "smooth_s": 0.0}, 2.0, True),
+    "OU0+Kp3+thr": ({"adapt": False, "smooth_s": 0.0}, 3.0, True),
+    "OU0+Kp4+thr": ({"adapt": False, "smooth_s": 0.0}, 4.0, True),
 }
 
 
@@ -54,7 +57,8 @@ def _parse_seeds(text: str) -> list[int]:
     return [int(s) for s in text.split(",")]
 
 
-def run_variant(tier: str, seeds: Sequence[int], est_changes: dict, k_p: float) -> pd.DataFrame:
+def run_variant(tier: str, seeds: Sequence[int], est_changes: dict, k_p: float,
+                thruster_tc_s: float = 0.0, thruster_rate: float = float("inf")) -> pd.DataFrame:
     """Per-episode steady-state mean tracking error and estimate error of one variant."""
     env_id = f"AUVFollow-{tier}-v1"
     venv = gym.make_vec(env_id, num_envs=len(seeds))
@@ -67,8 +71,9 @@ def run_variant(tier: str, seeds: Sequence[int], est_changes: dict, k_p: float) 
     gains = dataclasses.replace(Gains(), K_p=k_p)
     ctrl = HierarchicalController(spec, prediction=True, robust=True, gains=gains, name="KF_DOB",
                                   estimator=TargetEstimator(spec, cfg),
-                                  disturbance_observer=DisturbanceObserver(spec.nominal, spec.dt, spec.force_limits,
-                                                                           DOB_TIME_CONSTANT))
+                                  disturbance_observer=DisturbanceObserver(
+                                      spec.nominal, spec.dt, spec.force_limits, DOB_TIME_CONSTANT,
+                                      thruster_tc_s=thruster_tc_s, thruster_rate=thruster_rate))
     shadow = TargetEstimator(spec, cfg)  # the same filter on the same input: the controller's estimate
     obs, info = venv.reset(seed=list(seeds))
     n, T = len(seeds), spec.n_steps
@@ -132,8 +137,14 @@ def main(argv: list[str] | None = None) -> int:
     for tier in tiers:
         res = {}
         for v in tqdm(names, desc=tier, disable=None):
-            changes, k_p = VARIANTS[v]
-            res[v] = run_variant(tier, seeds, changes, k_p)
+            changes, k_p, *thr = VARIANTS[v]
+            kw = {}
+            if thr and thr[0]:  # the observer models the tier's thrusters (its published lag and rate)
+                from auv_follow_env.tiers import TIERS
+                fx = TIERS[tier].fixed
+                kw = {"thruster_tc_s": float(fx.get("thruster_tc_s", 0.0)),
+                      "thruster_rate": float(fx.get("thruster_rate", float("inf")))}
+            res[v] = run_variant(tier, seeds, changes, k_p, **kw)
         ref = res[names[0]]
         lines += [f"### {tier} (seeds {seeds[0]}-{seeds[-1]}, {len(seeds)} episodes)", "",
                   "| variant | K_p | tracking IQM [m] (95 % CI) | IQM change vs first [%] | "

@@ -183,3 +183,33 @@ def test_ou0_refuses_bad_settings():
         EstimatorConfig(model="OU0", adapt="yes")
     with pytest.raises(ValueError, match="tau_u"):
         EstimatorConfig(model="OU", tau_u=math.inf)
+
+
+def test_observer_with_thruster_model_sees_the_lagged_force():
+    """A constant command c from rest through a first-order lag (alpha = 1 - e^{-dt/T}) and a rate
+    limit: f_k = f_{k-1} + alpha (c - f_{k-1}) clipped to +- rate * limit * dt per step, acting
+    over step k. A vehicle held at rest by a disturbance d = -f_k: at the next step the observer
+    measures d_meas = -f_k (with the thruster model; without it, -c) and low-pass filters it with
+    gain dt / (T_d + dt)."""
+    from auv_follow_env.params import VehicleParams
+    from controllers import DisturbanceObserver
+
+    nom = VehicleParams()
+    lim = (100.0, 100.0, 20.0)
+    alpha, step, g = 1 - math.exp(-DT / 0.3), 1.5 * DT * np.array(lim), DT / (0.5 + DT)
+    c = np.array([[60.0, -30.0, 5.0]])
+    nu, cur = np.zeros((1, 3)), np.zeros((1, 2))
+    for model in (True, False):
+        kw = {"thruster_tc_s": 0.3, "thruster_rate": 1.5} if model else {}
+        dob = DisturbanceObserver(nom, DT, lim, 0.5, **kw)
+        dob.update(nu, cur, np.array([True]))
+        f, d_hat = np.zeros(3), np.zeros(3)
+        for k in range(40):
+            dob.applied(c)
+            f = np.clip(f + alpha * (c[0] - f), f - step, f + step)  # what acts over this step
+            meas = -f if model else -c[0]
+            if k == 0:  # by hand: the rate limit (1.5 * 0.05 * 100 = 7.5 N) binds before the lag (9.21 N)
+                assert f[0] == pytest.approx(7.5) and alpha * 60.0 > 9.2
+            got = dob.update(nu, cur, np.array([False]))[0]
+            d_hat = np.clip(d_hat + g * (meas - d_hat), -np.array(lim), np.array(lim))
+            np.testing.assert_allclose(got, d_hat, rtol=1e-12, atol=1e-12)
