@@ -276,3 +276,25 @@ def test_bad_arguments():
         floors.record_episodes("Easy", [1], "NOPE")
     with pytest.raises(ValueError, match="obs has shape"):
         floors.perfect_link_observation(np.zeros((2, 16)), np.zeros((2, 6)), np.zeros((2, 3)), (0, 0))
+
+
+def test_benchmark_with_floors_and_report(tmp_path):
+    """benchmark(floors=True): the floors are reference rows (never the best classical), the
+    leaderboard gets gap_closed (0 for the best classical), the Markdown its column, and the HTML
+    report marks them and replays a competitor, not a floor."""
+    from agents.benchmark import benchmark
+    from agents.report import write_report
+
+    seeds = [1000000, 1000001, 1000002]
+    res = benchmark(["PROPOSED", "PROPOSED_KF"], tiers=["Easy"], seeds=seeds, floors=True, out_dir=tmp_path,
+                    n_resamples=50, progress=False)
+    b = res.leaderboard.set_index("policy")
+    assert b.loc[floors.CONTROL_FLOOR, "kind"] == b.loc[floors.INFORMATION_FLOOR, "kind"] == floors.REFERENCE_KIND
+    best = b["best_classical"].iloc[0]
+    assert best in ("PROPOSED", "PROPOSED_KF") and b.loc[best, "gap_closed"] == 0.0
+    other = ({"PROPOSED", "PROPOSED_KF"} - {best}).pop()
+    f, x, o = (b.loc[p, "true_steady_mean_iqm"] for p in (floors.INFORMATION_FLOOR, best, other))
+    assert b.loc[other, "gap_closed"] == pytest.approx((x - o) / (x - f))
+    assert "gap closed" in (tmp_path / "leaderboard.md").read_text()
+    page = write_report(tmp_path).read_text()
+    assert "leaderboard-row reference" in page and "gap closed" in page
