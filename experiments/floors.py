@@ -169,8 +169,8 @@ def report(table: pd.DataFrame, perfect: pd.DataFrame, args: Args, command: str)
 
 def main(argv: list[str] | None = None) -> None:
     args, out = parse_args(argv)
-    command = "python -m experiments.floors" + ("" if not argv and len(sys.argv) <= 1 else
-                                                " " + shlex.join(argv if argv is not None else sys.argv[1:]))
+    given = [a for a in (argv if argv is not None else sys.argv[1:]) if a != "--no-progress"]
+    command = "python -m experiments.floors" + (" " + shlex.join(given) if given else "")
     table, perfect = run(args)
     out.mkdir(parents=True, exist_ok=True)
     table.to_csv(out / "floors.csv", index=False, float_format="%.10g")
