@@ -298,3 +298,17 @@ def test_benchmark_with_floors_and_report(tmp_path):
     assert "gap closed" in (tmp_path / "leaderboard.md").read_text()
     page = write_report(tmp_path).read_text()
     assert "leaderboard-row reference" in page and "gap closed" in page
+
+
+def test_floors_script_smoke(tmp_path, capsys):
+    from experiments.floors import main
+
+    main(["--tiers", "Easy", "--seeds", "2", "--out", str(tmp_path), "--no-progress"])
+    table = pd.read_csv(tmp_path / "floors.csv")
+    assert list(table["seed"]) == [1000000, 1000001] and (table["tier"] == "Easy").all()
+    assert (table["expected_steady_mean"] > table["control_floor_steady_mean"]).all()
+    text = (tmp_path / "floors.md").read_text()
+    assert "python -m experiments.floors --tiers Easy --seeds 2 --out" in text and "| Easy |" in text
+    with pytest.raises(SystemExit):
+        main(["--seeds", "1"])
+    assert "--seeds must be in [2, 100]" in capsys.readouterr().err
