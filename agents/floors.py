@@ -677,13 +677,12 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
         df[f"own_{m}"] = np.nan
     df.insert(0, "env_id", env_id)
     df.insert(0, "tier", tier)
-    df["scenario"], df["disturbance"] = "S4", None
-    df["kind"] = REFERENCE_KIND
-    df["fail_error_m"] = bench_max_distance(env_id)
     probe = gym.make(env_id)
     spec = probe.unwrapped.task_spec
     probe.close()
-    df["disturbance"] = spec.disturbance
+    df["scenario"], df["disturbance"] = spec.scenario, spec.disturbance
+    df["kind"] = REFERENCE_KIND
+    df["fail_error_m"] = bench_max_distance(env_id)
     return df.merge(_condition_columns(env_id, seeds, spec), on="seed", how="left")
 
 
