@@ -541,7 +541,8 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
         ``<m>_iqm_lo``, ``<m>_iqm_hi``, ``<m>_mean``, ``<m>_mean_lo``, ``<m>_mean_hi``;
         ``termination_rate``, ``best_classical``, ``<m0>_iqm_change_pct`` (vs the best
         classical baseline), ``poi``, ``poi_lo``, ``poi_hi``; ``run_iqm_min`` /
-        ``run_iqm_max`` (spread of the per-run IQMs of ``metrics[0]``).
+        ``run_iqm_max`` (spread of the per-run IQMs of ``metrics[0]``); with reference rows
+        (``kind="reference"``, the floors of :mod:`agents.floors`) also ``gap_closed``.
     """
     need = {"tier", "policy", "kind", "run", "terminated", *metrics}
     missing = sorted(need - set(episodes.columns))
@@ -586,6 +587,10 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
             x = scores(ep_t[ep_t["policy"] == board.at[i, "policy"]], m0).to_numpy()
             board.loc[i, ["poi", "poi_lo", "poi_hi"]] = probability_of_improvement(
                 x, y, n_resamples=max(200, n_resamples // 5), seed=seed, confidence=confidence)
+    if (board["kind"] == "reference").any():  # floors (agents/floors.py): their gap column
+        from agents.floors import add_gap_closed
+
+        board = add_gap_closed(board, m0)
     return board
 
 
@@ -657,6 +662,8 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
             short = m.replace("true_", "").replace("_mean", "")
             head += [f"{short} IQM", f"{short} mean"]
         head += ["vs best classical (IQM)", "P(better) vs best classical", "terminated"]
+        gap = "gap_closed" in sub and sub["gap_closed"].notna().any()  # floors present (agents/floors.py)
+        head += ["gap closed"] if gap else []
         lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for _, r in sub.sort_values(f"{m0}_iqm").iterrows():
             cells = [f"**{r['policy']}**" if r["policy"] == best else str(r["policy"]), r["kind"],
@@ -668,6 +675,8 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
             cells.append("-" if chg is None or not np.isfinite(chg) else f"{chg:+.1f} %")
             cells.append(_fmt_ci(r["poi"], r["poi_lo"], r["poi_hi"], 2))
             cells.append(f"{100 * r['termination_rate']:.0f} %")
+            if gap:
+                cells.append("-" if not np.isfinite(r["gap_closed"]) else f"{r['gap_closed']:.2f}")
             lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
     if prov is not None:
@@ -695,7 +704,7 @@ def plot_leaderboard(board: pd.DataFrame, path: str | Path, metric: str = "true_
         y = np.arange(len(sub))
         est = sub[f"{metric}_iqm"].to_numpy()
         err = np.vstack([est - sub[f"{metric}_iqm_lo"].to_numpy(), sub[f"{metric}_iqm_hi"].to_numpy() - est])
-        colors = ["C1" if k == "classical" else "C0" for k in sub["kind"]]
+        colors = ["C1" if k == "classical" else "0.6" if k == "reference" else "C0" for k in sub["kind"]]
         ax.barh(y, est, xerr=err, color=colors, capsize=3)
         ax.set_yticks(y, sub["policy"], fontsize=8)
         ax.set_xscale("log")
@@ -706,7 +715,8 @@ def plot_leaderboard(board: pd.DataFrame, path: str | Path, metric: str = "true_
         ax.tick_params(axis="x", labelsize=8)
         ax.set_title(tier)
         ax.set_xlabel(f"IQM {metric.replace('true_', '')} [m]")
-    fig.suptitle("true-reference error, IQM with 95 % CI (orange: classical, blue: learned)", fontsize=9)
+    grey = ", grey: floors (references)" if (board["kind"] == "reference").any() else ""
+    fig.suptitle(f"true-reference error, IQM with 95 % CI (orange: classical, blue: learned{grey})", fontsize=9)
     fig.tight_layout()
     meta = {"Description": json.dumps(prov, default=str)} if prov is not None else None
     fig.savefig(path, dpi=120, metadata=meta)
@@ -744,7 +754,7 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
               seeds: Mapping[str, Sequence[int]] | Sequence[int] | None = None, out_dir: str | Path | None = None,
               n_resamples: int = DEFAULT_RESAMPLES, bootstrap_seed: int = DEFAULT_BOOTSTRAP_SEED,
               batched: bool = True, progress: bool = True, command: str | None = None,
-              cache_dir: str | Path | None = None) -> BenchmarkResult:
+              cache_dir: str | Path | None = None, floors: bool = False) -> BenchmarkResult:
     """Score ``policies`` on ``tiers`` and build the leaderboard.
 
     Args:
@@ -759,6 +769,9 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
         batched: evaluate through the native vector env.
         command: the command line to record (the CLI fills it in).
         cache_dir: reuse the episodes of runs evaluated before (see :func:`evaluate_tier`).
+        floors: add each v1 tier's control and information floors as reference rows
+            (``kind="reference"``, :func:`agents.floors.floor_episodes`) and the leaderboard's
+            ``gap_closed`` column.
 
     Raises:
         ValueError: unknown tier or policy, bad seeds.
@@ -786,12 +799,16 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
             seed_map[t] = list(seeds)
     frames = [evaluate_tier(specs, t, seed_map[t], batched=batched, progress=progress, cache_dir=cache_dir)
               for t in tqdm(tiers, desc="tiers", disable=not progress)]
+    if floors:  # reference rows, not competitors (agents/floors.py)
+        from agents.floors import floor_episodes
+
+        frames += [floor_episodes(t, seed_map[t], progress=progress) for t in tiers if t in V1_TIERS]
     episodes = pd.concat(frames, ignore_index=True)
     board = leaderboard(episodes, n_resamples=n_resamples, seed=bootstrap_seed, progress=progress)
     config = {"command": command, "tiers": {t: resolve_tier(t)[1] for t in tiers}, "seeds": seed_map,
               "policies": [dataclasses.asdict(s) for s in specs], "metrics": list(LEADERBOARD_METRICS),
               "n_resamples": n_resamples, "bootstrap_seed": bootstrap_seed, "confidence": 0.95,
-              "batched": batched, "published_seeds": seeds is None,
+              "batched": batched, "published_seeds": seeds is None, "floors": floors,
               "cache_dir": None if cache_dir is None else str(cache_dir)}
     prov = provenance(config)
     result = BenchmarkResult(episodes, board, prov)

@@ -131,13 +131,15 @@ def _fig_leaderboard(board: pd.DataFrame):
         sub = board[board["tier"] == tier].sort_values(f"{m}_iqm", ascending=False)
         fig.add_trace(go.Bar(
             x=sub[f"{m}_iqm"], y=sub["policy"], orientation="h", showlegend=False,
-            marker_color=["#ff7f0e" if kd == "classical" else "#1f77b4" for kd in sub["kind"]],
+            marker_color=["#ff7f0e" if kd == "classical" else "#999999" if kd == "reference" else "#1f77b4"
+                          for kd in sub["kind"]],
             error_x={"type": "data", "symmetric": False, "array": sub[f"{m}_iqm_hi"] - sub[f"{m}_iqm"],
                      "arrayminus": sub[f"{m}_iqm"] - sub[f"{m}_iqm_lo"]},
             hovertemplate="%{y}: %{x:.4f} m<extra></extra>"), row=1, col=k)
         fig.update_xaxes(type="log", title_text="IQM steady error [m]", row=1, col=k)
     fig.update_layout(height=120 + 28 * board.groupby("tier").size().max(), margin={"l": 10, "r": 10, "t": 40},
-                      title="Steady-state true-reference error: IQM and 95 % CI (orange classical, blue learned)")
+                      title="Steady-state true-reference error: IQM and 95 % CI (orange classical, blue learned"
+                            + (", grey floors)" if (board["kind"] == "reference").any() else ")"))
     return fig
 
 
@@ -260,6 +262,8 @@ def _table_html(board: pd.DataFrame) -> str:
         head = ["policy", "kind", "runs x episodes", "steady IQM [95 % CI]", "steady mean [95 % CI]",
                 "full IQM [95 % CI]", "full mean [95 % CI]", "vs best classical", "P(better) [95 % CI]",
                 "terminated"]
+        gap = "gap_closed" in sub and sub["gap_closed"].notna().any()  # floors present (agents/floors.py)
+        head += ["gap closed"] if gap else []
         parts.append("<table class='leaderboard' data-tier='" + html.escape(str(tier)) + "'><thead><tr>" +
                      "".join(f"<th>{h}</th>" for h in head) + "</tr></thead><tbody>")
         for _, r in sub.sort_values(f"{m0}_iqm").iterrows():
@@ -273,7 +277,10 @@ def _table_html(board: pd.DataFrame) -> str:
                      "-" if chg is None or not np.isfinite(chg) else f"{chg:+.1f} %",
                      "-" if not np.isfinite(r["poi"]) else f"{r['poi']:.2f} [{r['poi_lo']:.2f}, {r['poi_hi']:.2f}]",
                      f"{100 * r['termination_rate']:.0f} %"]
+            if gap:
+                cells.append("-" if not np.isfinite(r["gap_closed"]) else f"{r['gap_closed']:.2f}")
             cls = "leaderboard-row best" if r["policy"] == best else "leaderboard-row"
+            cls += " reference" if r["kind"] == "reference" else ""
             parts.append(f"<tr class='{cls}' data-policy='{html.escape(str(r['policy']))}'>" +
                          "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
         parts.append("</tbody></table>")
@@ -282,7 +289,7 @@ def _table_html(board: pd.DataFrame) -> str:
 
 _CSS = """body{font-family:system-ui,sans-serif;margin:2em;max-width:1400px}
 table{border-collapse:collapse;margin-bottom:1em;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px}
-tr.best{font-weight:bold;background:#fff4e5}th{background:#f3f3f3}pre{background:#f7f7f7;padding:1em;
+tr.best{font-weight:bold;background:#fff4e5}tr.reference{color:#666;font-style:italic}th{background:#f3f3f3}pre{background:#f7f7f7;padding:1em;
 overflow:auto;font-size:11px}.note{color:#555;font-size:13px}"""
 
 
@@ -319,8 +326,8 @@ def write_report(bench_dir: str | Path = "results/benchmark", out: str | Path | 
     if tier not in tiers:
         raise ValueError(f"replay_tier={replay_tier!r} was not benchmarked: valid tiers are {tiers}")
     _, env_id = resolve_tier(tier)
-    sub = board[board["tier"] == tier].sort_values("true_steady_mean_iqm")
-    labels = list(sub["policy"])
+    sub = board[(board["tier"] == tier) & (board["kind"] != "reference")].sort_values("true_steady_mean_iqm")
+    labels = list(sub["policy"])  # (floors are references: nothing to replay)
     policy = replay_policy if replay_policy is not None else labels[0]
     if policy not in labels:
         raise ValueError(f"replay_policy={replay_policy!r} is unknown: valid policies are {labels}")
