@@ -686,6 +686,43 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
     return df.merge(_condition_columns(env_id, seeds, spec), on="seed", how="left")
 
 
+def estimator_error(recording: dict[str, Any], config: Any = None) -> np.ndarray:
+    """The realised error of a :class:`controllers.estimator.TargetEstimator` (the tier's own
+    settings unless ``config`` is given) on a :func:`record_episodes` recording, with the
+    information floor's conventions: the estimate of the reference point at step t uses the
+    observations up to step t - 1 (predicted one control step ahead), steps before the first
+    packet are left out, and the per-episode value is the mean over the steady-state window
+    (t >= steady_start_s). Returns one value per episode [m] (NaN: no packet in the window)."""
+    from controllers.estimator import TargetEstimator
+
+    spec = recording["spec"]
+    obs, pose, ref, length = recording["obs"], recording["pose"], recording["ref"], recording["length"]
+    T, n = obs.shape[0] - 1, obs.shape[1]
+    est = TargetEstimator(spec, config)
+    pdx, pdy = spec.p_d
+    dt = spec.dt
+    total, count = np.zeros(n), np.zeros(n)
+    start = np.ones(n, dtype=bool)
+    ahead = np.array([dt])
+    for k in range(T):
+        e = est.step(obs[k].astype(np.float64), start, with_cov=False)
+        start = np.zeros(n, dtype=bool)
+        t = k + 1
+        if t * dt < spec.steady_start_s - 1e-9:
+            continue
+        x, y, psi = (a[:, 0] for a in est.trajectory(ahead, frame="body"))
+        c, s = np.cos(pose[k, :, 2]), np.sin(pose[k, :, 2])
+        px, py, ps = pose[k, :, 0] + c * x - s * y, pose[k, :, 1] + s * x + c * y, pose[k, :, 2] + psi
+        rx = px + np.cos(ps) * pdx - np.sin(ps) * pdy
+        ry = py + np.sin(ps) * pdx + np.cos(ps) * pdy
+        ok = e.valid & (t <= length)
+        err = np.hypot(rx - ref[t, :, 0], ry - ref[t, :, 1])
+        total[ok] += err[ok]
+        count[ok] += 1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / count, np.nan)
+
+
 def add_gap_closed(board: pd.DataFrame, metric: str = "true_steady_mean") -> pd.DataFrame:
     """Add ``gap_closed`` to a leaderboard: per tier with an :data:`INFORMATION_FLOOR` row and
     a best classical baseline, (best classical IQM - method IQM) / (best classical IQM -

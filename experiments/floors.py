@@ -79,6 +79,7 @@ def run(args: Args) -> tuple[pd.DataFrame, pd.DataFrame]:
         cf = floors.control_floor(tier, seeds, progress=args.progress)
         rec = floors.record_episodes(tier, seeds, args.follower, progress=args.progress)
         inf = floors.information_floor(tier, recording=rec)
+        inf["estimator_steady_mean"] = floors.estimator_error(rec)  # the tier's TargetEstimator (ours)
         eps = cf.episodes.assign(tier=tier)
         perfect.append(eps[["tier", "policy", "seed", "terminated", "true_steady_mean", "true_full_mean"]])
         best = cf.scores.set_index("seed")
@@ -107,21 +108,27 @@ def report(table: pd.DataFrame, perfect: pd.DataFrame, args: Args, command: str)
              "rate limit on). *Information floor*: expected error of the optimal estimate of the present reference "
              "point from the packets received (Kalman filter with the true parameters, linearised about the true "
              "trajectory). *Realised*: an extended Kalman filter with the true parameters on the same packets. "
-             f"*Follower*: {args.follower} on the real link (whose packets the floor uses).", "",
+             f"*Follower*: {args.follower} on the real link (whose packets the floor uses). *Estimator*: the "
+             "tier's own target estimator (`controllers.estimator`, OU0, which does not know the episode's "
+             "parameters) on the same packets, with the floor's conventions (`agents.floors.estimator_error`); "
+             "\"estimator / floor\" compares the sums over the episodes like \"realised / floor\".", "",
              "| tier | control floor (controller) | information floor | realised (EKF) | realised / floor | "
+             "estimator | estimator / floor | "
              f"{args.follower} (real link) | heading std > {floors.WIDE_HEADING_RAD} rad | turn rate clipped "
              "| steps w/o packet |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     notes = []
     for tier, d in table.groupby("tier", sort=False):
         ood = " (OOD)" if TIERS[tier].out_of_distribution else ""
         ok = d["expected_steady_mean"].notna()
         ratio = float(d.loc[ok, "realised_steady_mean"].sum() / d.loc[ok, "expected_steady_mean"].sum())
+        both = ok & d["estimator_steady_mean"].notna()
+        e_ratio = float(d.loc[both, "estimator_steady_mean"].sum() / d.loc[both, "expected_steady_mean"].sum())
         clipped = float(d["clipped_turn_share"].mean())
         wide = float(d.loc[ok, "wide_heading_share"].mean())
         lines.append(f"| {tier}{ood} | {_ci(d['control_floor_steady_mean'])} ({d['control_floor_controller'].iloc[0]}) "
                      f"| {_ci(d.loc[ok, 'expected_steady_mean'])} | {_ci(d.loc[ok, 'realised_steady_mean'])} "
-                     f"| {ratio:.2f} "
+                     f"| {ratio:.2f} | {_ci(d.loc[both, 'estimator_steady_mean'])} | {e_ratio:.3f} "
                      f"| {_ci(d['follower_steady_mean'])} | {100 * wide:.1f} % | {100 * clipped:.1f} % "
                      f"| {int(d['steady_steps_without_packet'].sum())} |")
         if clipped > 0.005 or wide > 0.05 or abs(ratio - 1.0) > 0.1:
