@@ -48,6 +48,9 @@ FLAGS: dict[str, str] = {
     "eval_seed": "--eval-seed", "resume_from": "--resume", "hyperparams_file": "--hyperparams",
     "hyperparams": "--hp", "verbose": "--verbose"}
 
+#: where ``auv-follow benchmark`` writes without --out (ignored by git, like experiments/outputs.py's scratch)
+SCRATCH_BENCH = "results/tmp/benchmark"
+
 _TRUST = ("Run directories and model files from others must be trusted like code: an SB3 model.zip can hold "
           "pickled objects (and --resume unpickles vecnormalize.pkl). Evaluation reads the observation statistics "
           "only from vecnormalize.json.")
@@ -320,9 +323,11 @@ def _add_benchmark_commands(sub: Any) -> None:
                    help="S1..S4 (paper scenarios) and/or Easy, Medium, Hard, Extreme (v1 tiers)")
     b.add_argument("--seeds", type=_seeds, default=None,
                    help="override the published test seeds (quick looks only), e.g. 1000-1009")
-    b.add_argument("--out", default="results/benchmark", help="output directory")
+    b.add_argument("--out", default=None,
+                   help=f"output directory (default: {SCRATCH_BENCH}, ignored by git; the committed leaderboard in "
+                        "results/benchmark is rewritten only when you give --out results/benchmark)")
     b.add_argument("--resamples", type=_positive_int, default=DEFAULT_RESAMPLES, help="bootstrap resamples")
-    b.add_argument("--bootstrap-seed", type=int, default=0)
+    b.add_argument("--bootstrap-seed", type=_nonneg_int, default=0, help="seed of the bootstrap resampling")
     b.add_argument("--unbatched", dest="batched", action="store_false",
                    help="one single-env episode at a time instead of one native vector env")
     b.add_argument("--cache", dest="cache_dir", default=None,
@@ -357,6 +362,10 @@ def _cmd_benchmark(args: argparse.Namespace) -> None:
 
     from agents.benchmark import benchmark, goal_check
 
+    if args.out is None:
+        args.out = SCRATCH_BENCH
+        print(f"writing to {SCRATCH_BENCH} (ignored by git); give --out to choose the place", file=sys.stderr)
+    _check_writable(Path(args.out), "--out", want_dir=True)
     res = benchmark(args.policies, args.tiers, seeds=args.seeds, out_dir=args.out, n_resamples=args.resamples,
                     bootstrap_seed=args.bootstrap_seed, batched=args.batched, progress=args.progress,
                     cache_dir=args.cache_dir,
@@ -370,6 +379,8 @@ def _cmd_benchmark(args: argparse.Namespace) -> None:
 def _cmd_report(args: argparse.Namespace) -> None:
     from agents.report import write_report
 
+    if args.out is not None:
+        _check_writable(Path(args.out), "--out", want_dir=False)
     path = write_report(args.bench, args.out, replay_policy=args.replay_policy, replay_tier=args.replay_tier,
                         replay_seed=args.replay_seed)
     print(f"report: {path}")
@@ -384,10 +395,24 @@ def _cmd_sweep(args: argparse.Namespace) -> None:
 
 
 def _run_handler(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    """Run benchmark / report / sweep: a refusal is one line naming the argument or file (exit
+    code 2); Ctrl-C prints one line and returns 130 (nothing half-written is left in place)."""
     try:
         args.handler(args)
-    except (ValueError, FileNotFoundError) as exc:
-        parser.error(str(exc))
+    except _Refused as exc:
+        flag, msg = exc.args
+        print(f"auv-follow {args.command}: error: argument {flag}: {msg}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except (ValueError, FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as exc:
+        msg = " ".join(str(exc).split())
+        print(f"auv-follow {args.command}: error: {msg}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print(f"auv-follow {args.command}: interrupted (nothing half-written was kept)", file=sys.stderr)
+        return 130
+    except MemoryError:
+        print(f"auv-follow {args.command}: error: out of memory: use fewer seeds or policies", file=sys.stderr)
+        raise SystemExit(2) from None
     return 0
 
 

@@ -82,6 +82,13 @@ class SweepConfig:
         from agents.benchmark import resolve_tier
         from agents.train import ALGOS, MODES
 
+        name = self.name
+        if not isinstance(name, str) or not name.strip() or name in (".", "..") or any(
+                c in name for c in ("/", "\\", "\0")) or name != name.strip():
+            raise ValueError(f"name={name!r} is invalid: must be one path component (no '/', '\\', '.' or '..'), "
+                             f"the experiment folder inside storage")
+        if not isinstance(self.storage, str) or not self.storage:
+            raise ValueError(f"storage={self.storage!r} is invalid: must be a directory or a URI")
         for k, v in self.grid.items():
             if not isinstance(v, list) or not v:
                 raise ValueError(f"grid[{k!r}]={v!r} is invalid: must be a non-empty list")
