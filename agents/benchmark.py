@@ -863,7 +863,11 @@ def replay_traces(specs: Sequence[PolicySpec], seed_map: Mapping[str, Sequence[i
             df.insert(0, "policy", spec.label)
             df.insert(0, "tier", name)
             frames.append(df)
-    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=["tier", "policy", "seed"])
+    if not frames:
+        return pd.DataFrame(columns=["tier", "policy", "seed"])
+    out = pd.concat(frames, ignore_index=True)
+    floats = [c for c in out.columns if out[c].dtype == np.float64]
+    return out.astype({c: np.float32 for c in floats})  # plotted only: half the file size
 
 
 def write_outputs(out: Path, episodes: pd.DataFrame, board: pd.DataFrame, prov: Mapping[str, Any],

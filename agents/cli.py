@@ -346,14 +346,22 @@ def _add_benchmark_commands(sub: Any) -> None:
 
     s = sub.add_parser("sweep", help="Ray Tune sweep: algorithm x hyperparameters x training seed x tier")
     s.add_argument("--config", default=None, help="YAML search space (default: a small built-in grid)")
-    s.add_argument("--name", default="auv-follow-sweep", help="experiment name (resume key)")
-    s.add_argument("--storage", default="results/sweeps", help="directory of the Ray Tune experiment")
+    s.add_argument("--name", default=None,
+                   help="experiment name, one path component: the folder inside --storage and the resume key "
+                        "(default: the config's name, else auv-follow-sweep)")
+    s.add_argument("--storage", default=None,
+                   help="directory of the Ray Tune experiment (default: the config's storage, else results/sweeps)")
     s.add_argument("--address", default=None, help="existing Ray cluster (default: RAY_ADDRESS or local Ray)")
-    s.add_argument("--timesteps", type=_positive_int, default=None, help="env steps per trial")
-    s.add_argument("--chunks", type=_positive_int, default=None, help="reports (and checkpoints) per trial")
-    s.add_argument("--num-samples", type=_positive_int, default=1, help="samples of the search space")
-    s.add_argument("--cpus-per-trial", type=_positive_float, default=1.0)
-    s.add_argument("--no-resume", dest="resume", action="store_false", help="start afresh even if resumable")
+    s.add_argument("--timesteps", type=_positive_int, default=None,
+                   help="env steps per trial (default: the config's, else 20000)")
+    s.add_argument("--chunks", type=_positive_int, default=None,
+                   help="reports (and checkpoints) per trial (default: the config's, else 2)")
+    s.add_argument("--num-samples", type=_positive_int, default=None,
+                   help="samples of the search space (default: the config's, else 1)")
+    s.add_argument("--cpus-per-trial", type=_positive_float, default=None,
+                   help="CPUs Tune reserves per trial (default: the config's, else 1)")
+    s.add_argument("--no-resume", dest="resume", action="store_const", const=False, default=None,
+                   help="start afresh even if the experiment can be resumed (default: resume)")
     s.set_defaults(handler=_cmd_sweep)
 
 

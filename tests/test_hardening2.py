@@ -1,0 +1,353 @@
+"""Hardening II (issue 21): each test takes the input of a reproducer in
+/work/shared/reproducers (named in its docstring) and asserts the fixed behaviour.
+
+Item map: 1 xss_kind_tier.sh -> test_report_escapes_every_value_from_the_folder,
+test_markdown_escapes_labels; 2 report_unpickle.sh -> test_report_never_loads_a_model_file;
+3 -> test_policy_kwargs_*; 4 -> test_sweep_name_cannot_leave_storage; 5 stale_cache.sh ->
+test_cache_key_*, test_broken_cache_entry_*; 6 p2_partial_write.py -> test_interrupted_write_*,
+test_mixed_folder_is_refused; 7 default_out_overwrite.sh -> test_benchmark_without_out_*;
+8 interrupted_run_in_benchmark.sh -> test_interrupted_run_is_refused, and
+test_statistics_contradicting_config_are_refused.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import pickle
+import shutil
+import zipfile
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+
+import agents.benchmark as B
+from agents.benchmark import benchmark, load_result, parse_policy
+from agents.cli import main
+from agents.report import write_report
+
+ROOT = Path(__file__).resolve().parents[1]
+LEARNED_RUN = ROOT / "results" / "benchmark" / "runs" / "ppo-scratch" / "ppo-Hard-scratch-seed0"
+SEEDS = [3000000, 3000001]  # the reproducers' quick-look seeds (Hard)
+XSS = "<img src=x onerror=alert('kind')>"
+
+
+@pytest.fixture(scope="module")
+def run_copy(tmp_path_factory) -> Path:
+    """A copy of a committed finished run (the reproducers' runs/tiny)."""
+    dst = tmp_path_factory.mktemp("runs") / "tiny"
+    shutil.copytree(LEARNED_RUN, dst, ignore=shutil.ignore_patterns("checkpoints", "tb", "monitor", "eval"))
+    return dst
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory, run_copy) -> Path:
+    """`benchmark --tiers Hard --seeds 3000000-3000001 --resamples 50 --policies PROPOSED L=<run>`."""
+    out = tmp_path_factory.mktemp("bench")
+    benchmark(["PROPOSED", f"L={run_copy}"], ["Hard"], seeds=SEEDS, out_dir=out, n_resamples=50, progress=False)
+    return out
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+# --- item 1: escaping ---------------------------------------------------------------------------
+
+def test_report_escapes_every_value_from_the_folder(bench, tmp_path):
+    """xss_kind_tier.sh: kind of a row and tier of an added row set to <img onerror>; a policy label
+    that plotly would render as a link."""
+    b = _copy(bench, tmp_path / "b")
+    p = b / "leaderboard.csv"
+    lines = p.read_text().splitlines()
+    head = lines[1].split(",")
+    row = lines[2].split(",")
+    row[head.index("kind")] = f'"{XSS}"'
+    lines[2] = ",".join(row)
+    row2 = list(row)
+    row2[head.index("tier")] = "\"<img src=x onerror=alert('tier')>\""
+    lines.append(",".join(row2))
+    row3 = list(lines[3].split(","))
+    row3[head.index("policy")] = '"<a href=""javascript:alert(1)"">click</a>"'
+    lines.append(",".join(row3))
+    p.write_text("\n".join(lines) + "\n")
+    page = write_report(b).read_text()
+    assert "<img src=x" not in page and "<a href=" not in page.split("<script")[0]
+    assert "&lt;img src=x onerror=alert(&#x27;kind&#x27;)&gt;" in page  # shown as text in the table
+    assert "&lt;img src=x onerror=alert(&#x27;tier&#x27;)&gt;" in page
+    # plotly renders a subset of HTML in labels: the label reaches it with its '<' as an entity
+    assert "javascript:alert(1)" in page and "\\u003ca href" not in page and "&lt;a href=" in page
+
+
+def test_markdown_escapes_labels():
+    """leaderboard.md: a label with HTML or a '|' stays text in one cell."""
+    board = pd.DataFrame([{"tier": "Hard", "policy": "<script>x</script>|y", "kind": "learned", "runs": 1,
+                           "episodes": 2, "best_classical": None, "termination_rate": 0.0,
+                           **{f"{m}_{s}{b}": 1.0 for m in B.LEADERBOARD_METRICS for s in ("iqm", "mean")
+                              for b in ("", "_lo", "_hi")},
+                           "true_steady_mean_iqm_change_pct": float("nan"), "poi": float("nan"),
+                           "poi_lo": float("nan"), "poi_hi": float("nan")}])
+    md = B.leaderboard_markdown(board, {"config": {"command": "auv-follow benchmark --policies 'a```b'"}})
+    assert "<script>" not in md and "&lt;script&gt;x&lt;/script&gt;\\|y" in md
+    row = next(line for line in md.splitlines() if "script" in line and line.startswith("|"))
+    assert row.count(" | ") + 2 == row.count("|") - row.count("\\|")  # the label's '|' is not a cell border
+    assert "\n````json\n" in md  # a fence longer than the backticks inside
+
+
+# --- item 2: report from the stored tables alone -------------------------------------------------
+
+def _evil_model(run: Path, marker: Path) -> None:
+    """p3_evil_model.py: model.zip whose 'data' has a cloudpickled entry that creates marker on load."""
+
+    class Evil:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+
+    src = run / "model.zip"
+    zin = zipfile.ZipFile(src)
+    data = json.loads(zin.read("data"))
+    data["lr_schedule"][":serialized:"] = base64.b64encode(pickle.dumps(Evil())).decode()
+    tmp = run / "evil.zip"
+    with zipfile.ZipFile(tmp, "w") as zout:
+        for item in zin.infolist():
+            zout.writestr(item, json.dumps(data) if item.filename == "data" else zin.read(item.filename))
+    zin.close()
+    tmp.replace(src)
+
+
+def test_report_never_loads_a_model_file(bench, run_copy, tmp_path, monkeypatch):
+    """report_unpickle.sh: benchmark.json points the learned policy at a run whose model.zip runs a
+    command when unpickled; the report is built and the command never runs."""
+    evil = _copy(run_copy, tmp_path / "evil_run")
+    marker = tmp_path / "PWNED_report"
+    _evil_model(evil, marker)
+    b = _copy(bench, tmp_path / "b")
+    prov = json.loads((b / "benchmark.json").read_text())
+    for p in prov["config"]["policies"]:
+        if p["kind"] == "learned":
+            p["runs"] = [str(evil)]
+    # keep the folder consistent (else it is refused as mixed): rewrite every stamp alike
+    (b / "benchmark.json").write_text(json.dumps(prov, indent=1))
+    res = load_result(bench)
+    B._write_parquet(res.episodes, b / "episodes.parquet", prov)
+    B._write_csv(res.leaderboard, b / "leaderboard.csv", prov)
+    B._write_parquet(res.traces, b / "traces.parquet", prov)
+    import agents.train
+
+    def no_load(*a, **k):
+        raise AssertionError("report loaded a model")
+
+    monkeypatch.setattr(agents.train, "load_agent", no_load)
+    page = write_report(b, replay_policy="L").read_text()
+    assert not marker.exists()
+    assert "Replay: L on Hard, seed 3000000" in page  # the learned episode comes from traces.parquet
+    # without traces a learned policy is left out with a note, and asking for it is refused
+    (b / "traces.parquet").unlink()
+    page = write_report(b).read_text()
+    assert not marker.exists() and "without a recorded episode" in page
+    with pytest.raises(ValueError, match="replay_policy='L' has no recorded episode"):
+        write_report(b, replay_policy="L")
+
+
+def test_report_replay_equals_a_fresh_episode(bench):
+    """The stored trace is the episode itself: PROPOSED's recorded forces equal a re-run's."""
+    import gymnasium as gym
+
+    from agents.report import rollout_episode
+    from controllers import make_controller
+
+    t = load_result(bench).traces
+    rec = t[(t["policy"] == "PROPOSED") & (t["seed"] == SEEDS[0])].reset_index(drop=True)
+    env = gym.make("AUVFollow-Hard-v1")
+    fresh = rollout_episode(make_controller("PROPOSED", env.unwrapped.task_spec), "AUVFollow-Hard-v1", SEEDS[0])
+    assert len(rec) == len(fresh) == 1200
+    assert rec["F_u"].to_numpy() == pytest.approx(fresh["F_u"].to_numpy(), rel=1e-6, abs=1e-3)
+
+
+# --- item 3: no eval ------------------------------------------------------------------------------
+
+def test_policy_kwargs_parsed_without_eval():
+    import torch.nn as nn
+
+    from agents.zoo_parse import parse_zoo_value
+
+    assert parse_zoo_value("dict(net_arch=dict(pi=[64, 64], vf=[32]), activation_fn=nn.Tanh, log_std_init=-1.0)") \
+        == {"net_arch": {"pi": [64, 64], "vf": [32]}, "activation_fn": nn.Tanh, "log_std_init": -1.0}
+    assert parse_zoo_value("dict(a=torch.nn.ReLU, b=(1, 2), c={'k': None}, d=True)") == \
+        {"a": nn.ReLU, "b": (1, 2), "c": {"k": None}, "d": True}
+
+
+@pytest.mark.parametrize("text", [
+    "dict(a=nn.__builtins__['__import__']('os').system('touch /tmp/x'))",  # the issue's escape
+    "dict(a=nn.__builtins__)", "dict(a=__import__('os'))", "dict(a=nn.Module)", "dict(a=(lambda: 1)())",
+    "dict(**{'a': 1})", "dict(a=1 + 1)", "dict(a=[x for x in 'ab'])", "dict(a=open)", "dict(a="])
+def test_policy_kwargs_escape_attempts_are_refused(text, tmp_path, capsys):
+    from agents.zoo_parse import parse_zoo_value
+
+    with pytest.raises(ValueError, match="not allowed|keyword arguments only|not a valid expression"):
+        parse_zoo_value(text)
+    # the CLI: --hp refuses it in one line naming --hp, before anything is created
+    with pytest.raises(SystemExit) as e:
+        main(["train", "--mode", "scratch", "--timesteps", "64", "--hp", f"policy_kwargs={text}",
+              "--out", str(tmp_path), "--run-name", "r", "--no-progress"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--hp" in err[0] and not (tmp_path / "r").exists()
+
+
+def test_policy_kwargs_from_a_hyperparameter_yaml_is_not_evaluated(tmp_path):
+    from agents.train import load_hyperparams
+
+    f = tmp_path / "ppo.yml"
+    f.write_text("default:\n  policy_kwargs: \"dict(a=nn.__builtins__['__import__']('os'))\"\n")
+    with pytest.raises(ValueError, match="nn.__builtins__"):
+        load_hyperparams("ppo", "AUVFollow-S4-v0", f)
+
+
+# --- item 4: sweep name ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", ["../../x", "a/b", "..", ".", "", "a\\b"])
+def test_sweep_name_cannot_leave_storage(name, tmp_path, capsys):
+    from agents.sweep import SweepConfig
+
+    with pytest.raises(ValueError, match="name="):
+        SweepConfig(name=name, storage=str(tmp_path)).validate()
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(yaml.safe_dump({"name": name}))
+    with pytest.raises(SystemExit) as e:
+        main(["sweep", "--config", str(cfg), "--storage", str(tmp_path / "st")])
+    assert e.value.code == 2 and "name=" in capsys.readouterr().err
+    assert not (tmp_path / "st").exists() and not (tmp_path.parent / "x").exists()
+
+
+# --- item 5: the cache ---------------------------------------------------------------------------
+
+def test_cache_key_covers_the_benchmark_code_and_package_versions(monkeypatch):
+    """stale_cache.sh changes agents/obs_stats.py: the key must change with it (and with versions)."""
+    assert {"agents/benchmark.py", "agents/obs_stats.py"} <= set(B._EPISODE_CODE)
+    spec = parse_policy("PID")
+    k0 = B._entry_key(spec, None, "AUVFollow-Hard-v1", SEEDS, "code-a")
+    assert B._entry_key(spec, None, "AUVFollow-Hard-v1", SEEDS, "code-b") != k0
+    for pkg in ("torch", "stable_baselines3", "casadi", "numpy"):
+        v = B._package_versions()
+        monkeypatch.setattr(B, "_package_versions", lambda v=v, pkg=pkg: {**v, pkg: "0.0-other"})
+        assert B._entry_key(spec, None, "AUVFollow-Hard-v1", SEEDS, "code-a") != k0, pkg
+        monkeypatch.undo()
+
+
+@pytest.mark.parametrize("damage", ["truncated", "nan", "wrong_seeds"])
+def test_broken_cache_entry_is_recomputed_not_trusted(damage, tmp_path, monkeypatch):
+    monkeypatch.setattr(B, "_code_fingerprint", lambda: "fixed")
+    specs = [parse_policy("PID")]
+    fresh = B.evaluate_tier(specs, "S1", [1000, 1001], progress=False, cache_dir=tmp_path)
+    (entry,) = tmp_path.glob("*.parquet")
+    if damage == "truncated":  # what a Ctrl-C during a non-atomic write left
+        entry.write_bytes(entry.read_bytes()[:100])
+    else:
+        d = pd.read_parquet(entry)
+        if damage == "nan":
+            d["true_full_mean"] = float("nan")
+        else:
+            d["seed"] = [5, 6]
+        d.to_parquet(entry, index=False)
+    with pytest.warns(UserWarning, match="cache entry"):
+        again = B.evaluate_tier(specs, "S1", [1000, 1001], progress=False, cache_dir=tmp_path)
+    pd.testing.assert_frame_equal(again, fresh)
+    assert pd.read_parquet(entry)["seed"].tolist() == [1000, 1001]  # rewritten with the fresh episodes
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+# --- item 6: no mixed outputs ----------------------------------------------------------------------
+
+def test_interrupted_write_keeps_the_previous_outputs(bench, tmp_path, monkeypatch):
+    """p2_partial_write.py: Ctrl-C injected at the PNG of a second run with other policies/seeds."""
+    b = _copy(bench, tmp_path / "b")
+    before = {f.name: f.read_bytes() for f in b.iterdir()}
+
+    def boom(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(B, "plot_leaderboard", boom)
+    with pytest.raises(KeyboardInterrupt):
+        benchmark(["PID", "PROPOSED"], ["Hard"], seeds=[3000010, 3000011], out_dir=b, n_resamples=50,
+                  progress=False)
+    assert {f.name: f.read_bytes() for f in b.iterdir()} == before  # nothing new, nothing half-written
+    res = load_result(b)
+    assert sorted(res.episodes["policy"].unique()) == ["L", "PROPOSED"]
+
+
+def test_mixed_folder_is_refused(bench, tmp_path, capsys):
+    b = _copy(bench, tmp_path / "b")
+    other = tmp_path / "other"
+    benchmark(["PID"], ["Hard"], seeds=[3000010], out_dir=other, n_resamples=50, progress=False)
+    shutil.copy(other / "leaderboard.csv", b / "leaderboard.csv")
+    with pytest.raises(ValueError, match="from different benchmark runs"):
+        load_result(b)
+    with pytest.raises(SystemExit) as e:
+        main(["report", "--bench", str(b)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "leaderboard.csv" in err[0]
+
+
+@pytest.mark.parametrize("name,content", [("benchmark.json", "{not json"), ("leaderboard.csv", "\x00\x01,\n\"a"),
+                                          ("episodes.parquet", "PAR1garbage")])
+def test_corrupt_file_is_one_line_naming_it(bench, tmp_path, capsys, name, content):
+    b = _copy(bench, tmp_path / "b")
+    (b / name).write_text(content)
+    with pytest.raises(SystemExit) as e:
+        main(["report", "--bench", str(b)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and name in err[0]
+
+
+# --- item 7: the committed leaderboard ------------------------------------------------------------
+
+def test_benchmark_without_out_writes_to_the_ignored_folder(tmp_path, monkeypatch, capsys):
+    """default_out_overwrite.sh: a quick look from the repository root (here a scratch copy of its layout)."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["benchmark", "--tiers", "S1", "--seeds", "1000", "--resamples", "50", "--no-progress",
+                 "--policies", "PID"]) == 0
+    assert (tmp_path / "results" / "tmp" / "benchmark" / "leaderboard.csv").is_file()
+    assert not (tmp_path / "results" / "benchmark").exists()
+    assert "results/tmp/benchmark" in capsys.readouterr().err
+    assert "/results/tmp/" in (ROOT / ".gitignore").read_text()
+
+
+# --- item 8: interrupted runs, contradicting statistics ---------------------------------------------
+
+def test_interrupted_run_is_refused(run_copy, tmp_path, capsys):
+    """interrupted_run_in_benchmark.sh: seed1 has result.interrupted: true (13,402 of 60,000 steps)."""
+    m = tmp_path / "method"
+    _copy(run_copy, m / "seed0")
+    sig = _copy(run_copy, m / "seed1")
+    cfg = yaml.safe_load((sig / "config.yaml").read_text())
+    cfg["result"].update({"interrupted": True, "num_timesteps": 13402})
+    cfg["run"]["total_timesteps"] = 60000
+    (sig / "config.yaml").write_text(yaml.safe_dump(cfg))
+    with pytest.raises(ValueError, match=r"seed1 is an interrupted training run .*13402 of 60000"):
+        parse_policy(str(m))
+    with pytest.raises(SystemExit) as e:
+        main(["benchmark", "--tiers", "Hard", "--seeds", "3000000-3000001", "--resamples", "50", "--no-progress",
+              "--policies", str(m), "--out", str(tmp_path / "bench_m")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and "interrupted" in err[-1] and not (tmp_path / "bench_m").exists()
+    del cfg["result"]  # still training / killed: no result at all
+    (sig / "config.yaml").write_text(yaml.safe_dump(cfg))
+    with pytest.raises(ValueError, match="has no 'result'"):
+        parse_policy(str(m))
+
+
+@pytest.mark.parametrize("field,value", [("norm_obs", False), ("clip_obs", 5.0), ("epsilon", 1e-4)])
+def test_statistics_contradicting_config_are_refused(run_copy, tmp_path, field, value):
+    from agents.train import load_agent
+
+    r = _copy(run_copy, tmp_path / "r")
+    stats = json.loads((r / "vecnormalize.json").read_text())
+    stats[field] = value
+    (r / "vecnormalize.json").write_text(json.dumps(stats))
+    with pytest.raises(ValueError, match=rf"vecnormalize.json: {field}=.* contradicts .*config.yaml"):
+        load_agent(r)
