@@ -195,6 +195,10 @@ def make_env_config(scenario: str = "S4", disturbance: str | None = None, *, ver
     if tier is not None:
         if version != "v1":
             raise ValueError(f"tier={tier!r} needs version='v1' (got version={version!r})")
+        own = TIERS[tier].scenario if tier in TIERS else None
+        if own is not None and scenario != own:
+            raise ValueError(f"scenario={scenario!r} is invalid on the tier AUVFollow-{tier}-v1: its plant is "
+                             f"{own!r}; for another scenario use AUVFollow-v1 (scenario=..., any link setting)")
         return make_tier_config(tier, disturbance, **overrides)
     return make_config(scenario, disturbance, version=version, **overrides)
 
