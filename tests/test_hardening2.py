@@ -351,3 +351,74 @@ def test_statistics_contradicting_config_are_refused(run_copy, tmp_path, field, 
     (r / "vecnormalize.json").write_text(json.dumps(stats))
     with pytest.raises(ValueError, match=rf"vecnormalize.json: {field}=.* contradicts .*config.yaml"):
         load_agent(r)
+
+
+# --- items 8 and 9: the environment refuses at construction what would fail or blow up later --------
+
+MIXED = {  # p1_mixed.py, p1_mixed_autoreset.py, p1_partial_reset.py
+    "jitter_vs_period": (dict(update_period_s=(0.5, 1.0), period_jitter_s=(0.0, 0.9)), "period_jitter_s"),
+    "spread_vs_latency_uniform": (dict(latency_model="uniform", latency_s=(0.5, 2.0), latency_spread_s=(0.0, 1.0)),
+                                  "latency_spread_s"),
+    "speed_min_vs_max": (dict(target_speed_min=(0.0, 1.0), target_speed_max=(0.5, 2.0)), "target_speed_min"),
+    "fixed_max_ranged_min": (dict(target_speed_min=(0.0, 1.0), target_speed_max=0.6), "target_speed_min"),
+    "fixed_period_ranged_jitter": (dict(update_period_s=0.5, period_jitter_s=(0.0, 0.5)), "period_jitter_s"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MIXED))
+def test_ranges_that_can_draw_an_invalid_condition_are_refused_at_construction(case):
+    import gymnasium as gym
+
+    kw, name = MIXED[case]
+    with pytest.raises(ValueError, match=name):
+        gym.make("AUVFollow-v1", **kw)
+    with pytest.raises(ValueError, match=name):
+        gym.make_vec("AUVFollow-v1", num_envs=8, **kw)
+
+
+def test_ranges_whose_every_draw_is_valid_are_accepted_and_never_fail():
+    """The boundary: jitter up to just below the shortest period, spread up to the smallest latency."""
+    import gymnasium as gym
+    import numpy as np
+
+    kw = dict(update_period_s=(1.0, 2.0), period_jitter_s=(0.0, 0.99), latency_model="uniform",
+              latency_s=(1.0, 2.0), latency_spread_s=(0.0, 1.0), target_speed_min=(0.0, 0.5),
+              target_speed_max=(0.5, 2.0), episode_s=1.0, steady_start_s=0.5)
+    v = gym.make_vec("AUVFollow-v1", num_envs=16, **kw)
+    v.reset(seed=0)
+    for _ in range(200):  # 10 autoresets per env
+        v.step(np.zeros((16, 3)))
+
+
+@pytest.mark.parametrize("scenario", ["S9", "S1"])
+def test_scenario_on_a_tier_id_is_refused(scenario):
+    import gymnasium as gym
+
+    with pytest.raises(ValueError, match=f"scenario='{scenario}' is invalid on the tier AUVFollow-Hard-v1"):
+        gym.make("AUVFollow-Hard-v1", scenario=scenario)
+
+
+@pytest.mark.parametrize("kw", [dict(force_limits=(3e3, 3e3, 3e3)),  # the issue: |obs| 1e9
+                                dict(force_limits=(1e5, 1e5, 1e5), physics_substeps=100)])  # p1_forces2.py
+def test_force_limits_the_integrator_cannot_follow_are_refused(kw):
+    import gymnasium as gym
+
+    with pytest.raises(ValueError, match="force_limits=.*yaw rate can reach F_r / N_r"):
+        gym.make("AUVFollow-v1", max_distance_m=1e4, **kw)
+
+
+def test_accepted_large_force_limits_stay_finite():
+    """RK4 on the surge/sway block (eigenvalues -d +- i r, |r| <= F_r / N_r): with the check
+    passed, random bang-bang actions keep every observation finite (p1_forces2.py's search)."""
+    import gymnasium as gym
+    import numpy as np
+
+    env = gym.make("AUVFollow-v1", force_limits=(3e3, 3e3, 3e3), physics_substeps=10, max_distance_m=1e4)
+    rng = np.random.default_rng(1)
+    for ep in range(5):
+        env.reset(seed=ep)
+        for _ in range(1200):
+            obs, r, term, trunc, _ = env.step(np.sign(rng.uniform(-1, 1, 3)))
+            assert np.isfinite(obs).all() and np.isfinite(r)
+            if term or trunc:
+                break
