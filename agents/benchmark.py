@@ -36,6 +36,7 @@ import dataclasses
 import json
 import math
 import platform
+import re
 import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -51,7 +52,7 @@ from tqdm.auto import tqdm
 import auv_follow_env  # noqa: F401  (registers the ids)
 
 __all__ = ["V0_TIERS", "V1_TIERS", "V0_TEST_SEEDS", "LEADERBOARD_METRICS", "PolicySpec", "BenchmarkResult",
-           "resolve_tier", "tier_test_seeds", "parse_policy", "iqm", "stratified_bootstrap_ci",
+           "resolve_tier", "tier_test_seeds", "default_test_seeds", "parse_policy", "iqm", "stratified_bootstrap_ci",
            "probability_of_improvement", "evaluate_tier", "leaderboard", "benchmark", "provenance",
            "leaderboard_markdown", "plot_leaderboard", "goal_check", "load_result"]
 
@@ -220,6 +221,18 @@ def tier_test_seeds(tier: str) -> list[int]:
     return seeds
 
 
+def default_test_seeds(env_id: str, n: int = 10) -> list[int]:
+    """The seeds ``evaluate`` / ``compare`` use when none are given: the first ``n`` published
+    test seeds of the env's family - a v1 tier's own (:func:`tier_test_seeds`), and
+    :data:`V0_TEST_SEEDS` for the paper's scenarios and the custom ids ``AUVFollow-v0`` /
+    ``AUVFollow-v1`` (held out from every seed the training code uses)."""
+    try:
+        name, _ = resolve_tier(env_id)
+    except ValueError:
+        return list(V0_TEST_SEEDS[:n])
+    return tier_test_seeds(name)[:n]
+
+
 def _published_seeds(name: str, env_id: str) -> list[int] | None:
     """Find the test seeds the env package publishes for a v1 tier."""
     import importlib
@@ -257,8 +270,8 @@ class PolicySpec:
     """One leaderboard entry: a scripted controller, or a learned method with its runs."""
 
     label: str  #: name on the leaderboard
-    kind: str  #: "classical" (scripted controller) or "learned"
-    controller: str | None = None  #: controller name (classical)
+    kind: str  #: "classical" (scripted controller), "learned" or "external" (a user's ``module:Class``)
+    controller: str | None = None  #: controller name (classical) or ``module:Class`` (external)
     runs: tuple[str, ...] = ()  #: run directories (learned; one per training seed)
     tiers: tuple[str, ...] = ()  #: the tiers it is scored on (empty: every benchmarked tier)
 
@@ -276,7 +289,8 @@ def _is_run(p: Path) -> bool:
 
 def parse_policy(item: str | Path | PolicySpec) -> PolicySpec:
     """A :class:`PolicySpec` from a controller name, a run directory, a directory of runs
-    (one method, its runs = training seeds) or ``"label=run_a,run_b"``; a suffix
+    (one method, its runs = training seeds), ``"label=run_a,run_b"`` or a user's controller
+    class ``"[label=]module.path:ClassName"`` (:func:`_import_external`); a suffix
     ``@Tier[+Tier]`` scores it on those tiers only (e.g. an expensive ``MPC@Hard``).
 
     Raises:
@@ -293,6 +307,11 @@ def parse_policy(item: str | Path | PolicySpec) -> PolicySpec:
         return dataclasses.replace(parse_policy(base), tiers=tiers)
     if text in _controllers():
         return PolicySpec(label=text, kind="classical", controller=text)
+    ext = _EXTERNAL.match(text)
+    if ext is not None and not Path(text).exists():
+        target = ext.group("target")
+        _import_external(target)  # refuses an unknown module or class now, naming it
+        return PolicySpec(label=ext.group("label") or target.rsplit(":", 1)[1], kind="external", controller=target)
     label = None
     paths = [text]
     if "=" in text and not Path(text).exists():
@@ -318,6 +337,46 @@ def parse_policy(item: str | Path | PolicySpec) -> PolicySpec:
 
         label = load_agent(runs[0]).name if len(runs) == 1 else Path(runs[0]).parent.name
     return PolicySpec(label=label, kind="learned", runs=tuple(runs))
+
+
+#: ``[label=]module.path:ClassName`` - a user's controller class (see :func:`_import_external`)
+_EXTERNAL = re.compile(r"^(?:(?P<label>[^=]+)=)?(?P<target>[A-Za-z_][\w.]*:[A-Za-z_]\w*)$")
+
+
+def _import_external(target: str) -> type:
+    """The class ``module.path:ClassName`` (the current directory is searched too, so a file
+    next to you works with the console script). Its protocol: ``Class(task_spec)`` builds the
+    policy for one tier; ``predict(observation, state=None, episode_start=None,
+    deterministic=True) -> (action, state)`` takes a batch ``(n_envs, obs_dim)`` (and a single
+    observation) and returns actions in [-1, 1] of shape ``(n_envs, 3)``; an optional
+    ``reset()`` is called before each episode. Importing runs the module: name only code you
+    trust (building a report never imports it).
+
+    Raises:
+        ValueError: the module cannot be imported, or has no such class with a ``predict``.
+    """
+    import importlib
+    import os
+    import sys
+
+    module, _, cls_name = target.partition(":")
+    cwd = os.getcwd()
+    added = cwd not in sys.path
+    if added:
+        sys.path.append(cwd)
+    try:
+        mod = importlib.import_module(module)
+    except ImportError as exc:
+        raise ValueError(f"policy={target!r} is invalid: module {module!r} cannot be imported ({exc}); give "
+                         "module.path:ClassName of an installed module or one under the current directory") from None
+    finally:
+        if added:
+            sys.path.remove(cwd)
+    cls = getattr(mod, cls_name, None)
+    if not isinstance(cls, type) or not callable(getattr(cls, "predict", None)):
+        raise ValueError(f"policy={target!r} is invalid: {module} has no class {cls_name!r} with a predict method "
+                         "(see docs/benchmark.md, 'Your own controller')")
+    return cls
 
 
 def _check_complete_run(run: Path, policy: str) -> None:
@@ -381,6 +440,8 @@ def build_policy(spec: PolicySpec, run: str | None, env_id: str, task_spec: Any,
         from controllers import make_controller
 
         return make_controller(spec.controller, task_spec)
+    if spec.kind == "external":
+        return _import_external(spec.controller)(task_spec)
     from agents.train import load_agent
 
     agent = load_agent(run, name=spec.label)

@@ -189,7 +189,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("model", help="run directory or model .zip")
     e.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default=None,
                    help="env id (None: the one the agent was trained on)")
-    e.add_argument("--seeds", type=_seeds, default=list(range(1000, 1010)), help="test seeds, e.g. 1000-1009 or 1,2")
+    e.add_argument("--seeds", type=_seeds, default=None,
+                   help="test seeds, e.g. 1000-1009 or 1,2 (default: the first 10 published test seeds of the env: "
+                        "a v1 tier's own, 1000-1009 for the paper's scenarios)")
     e.add_argument("--out", default=None, help="CSV file for the per-episode metrics")
     e.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
 
@@ -198,10 +200,12 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Agents and the scripted controllers on the same env and seeds: "
                                    "<name>.csv, <name>_summary.csv, <name>.md and <name>.png in --out.")
     c.add_argument("models", nargs="*", help="run directories or model .zip files")
-    c.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default="AUVFollow-S4-v0", help="env id")
+    c.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default=None,
+                   help="env id (default: the one the agents were trained on, AUVFollow-S4-v0 without agents)")
     c.add_argument("--env-kwarg", dest="env_kwargs", type=_key_value, action="append", default=[],
                    metavar="KEY=VALUE", help="scenario override for every policy (repeatable)")
-    c.add_argument("--seeds", type=_seeds, default=list(range(1000, 1010)), help="test seeds, e.g. 1000-1009 or 1,2")
+    c.add_argument("--seeds", type=_seeds, default=None,
+                   help="test seeds, e.g. 1000-1009 or 1,2 (default: the first 10 published test seeds of the env)")
     c.add_argument("--controllers", nargs="*", choices=ALL_CONTROLLERS, default=list(ALL_CONTROLLERS),
                    help="scripted controllers to include (default: the paper's four and ours)")
     c.add_argument("--out", default="results/tmp/compare", help="directory for the outputs (created if needed)")
@@ -247,6 +251,10 @@ def _train(args: argparse.Namespace) -> None:
     kw.pop("command")
     kw["env_kwargs"] = dict(kw["env_kwargs"])
     kw["hyperparams"] = dict(kw["hyperparams"])
+    tier = auv_follow_env.TIERS.get(kw["env_id"].split("-")[1]) if kw["env_id"].count("-") == 2 else None
+    if tier is not None and tier.out_of_distribution:
+        print(f"auv-follow train: warning: {kw['env_id']} is for out-of-distribution testing only; train on "
+              "Easy/Medium/Hard and score on it", file=sys.stderr)
     try:
         run = train(TrainConfig(**kw))
     except ConfigError as exc:
@@ -259,8 +267,11 @@ def _evaluate(args: argparse.Namespace) -> None:
 
     if args.out:
         _check_writable(Path(args.out), "--out", want_dir=False)
+    from agents.benchmark import default_test_seeds
+
     agent = _load(args.model, "model")
-    df = evaluate_agent(agent, args.seeds, env_id=args.env_id, progress=args.progress)
+    seeds = args.seeds if args.seeds is not None else default_test_seeds(args.env_id or agent.env_id)
+    df = evaluate_agent(agent, seeds, env_id=args.env_id, progress=args.progress)
     cols = ["policy", "seed", "true_steady_mean", "true_steady_rmse", "true_full_mean", "return"]
     print(df[cols].to_string(index=False))
     print(f"mean true steady-state mean error: {df['true_steady_mean'].mean():.4f} m")
@@ -277,7 +288,16 @@ def _compare(args: argparse.Namespace) -> None:
     _check_writable(out, "--out", want_dir=True)
     if not args.name or "/" in args.name or args.name in (".", ".."):
         raise _Refused("--name", f"{args.name!r} is invalid: must be a file name stem without '/'")
+    from agents.benchmark import default_test_seeds
+
     agents = [_load(m, "models") for m in args.models]
+    if args.env_id is None:
+        envs = sorted({a.env_id for a in agents})
+        if len(envs) > 1:
+            raise _Refused("--env", f"the agents were trained on different envs {envs}: give the env to compare on")
+        args.env_id = envs[0] if envs else "AUVFollow-S4-v0"
+    if args.seeds is None:
+        args.seeds = default_test_seeds(args.env_id)
     try:
         _, summary = compare(agents, args.env_id, args.seeds, controllers=args.controllers,
                              env_kwargs=dict(args.env_kwargs) or None, out_dir=out, name=args.name,
@@ -395,11 +415,22 @@ def _cmd_report(args: argparse.Namespace) -> None:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> None:
-    from agents.sweep import SweepConfig, sweep
+    from agents.sweep import SweepConfig, SweepFailed, sweep
 
-    cfg = SweepConfig.from_args(args)
-    best = sweep(cfg)
+    try:
+        cfg = SweepConfig.from_args(args)
+    except TypeError as exc:  # a YAML value of the wrong type reaching the dataclass
+        raise _Refused("--config", str(exc)) from None
+    try:
+        best = sweep(cfg)
+    except SweepFailed as exc:
+        print(f"auv-follow sweep: error: {exc}", file=sys.stderr)
+        raise SystemExit(1) from None
     print(best.to_string() if hasattr(best, "to_string") else best)
+    if best.attrs.get("errors"):
+        print(f"auv-follow sweep: {best.attrs['errors']} trial(s) failed: run the same command again to resume them",
+              file=sys.stderr)
+        raise SystemExit(1)
 
 
 def _run_handler(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:

@@ -579,7 +579,7 @@ def _parse_overrides(overrides: Mapping[str, object], allowed: tuple[str, ...], 
                 raise ValueError(f"physics_substeps={v!r} is invalid: must be an integer in [1, {MAX_SUBSTEPS}]")
             v = int(v)
         elif k in CONDITION_CHOICES:
-            if v not in CONDITION_CHOICES[k]:
+            if not isinstance(v, str) or v not in CONDITION_CHOICES[k]:
                 raise ValueError(f"{k}={v!r} is invalid: must be one of {list(CONDITION_CHOICES[k])}")
         elif version == "v1" and k in RANGEABLE and isinstance(v, (tuple, list, np.ndarray)):
             lo, hi = as_real_tuple(k, v, 2)

@@ -422,3 +422,40 @@ def test_accepted_large_force_limits_stay_finite():
             assert np.isfinite(obs).all() and np.isfinite(r)
             if term or trunc:
                 break
+
+
+# --- item 11: a user's controller on the leaderboard ----------------------------------------------
+
+def test_user_controller_class_goes_on_the_leaderboard(tmp_path, capsys):
+    """The documented 20-line example, by module:Class, scores the same as evaluating it directly."""
+    import gymnasium as gym
+
+    from controllers.evaluation import evaluate
+    from examples.user_controller import GoToReference
+
+    assert len((ROOT / "examples" / "user_controller.py").read_text().splitlines()) <= 20
+    spec = parse_policy("mine=examples.user_controller:GoToReference")
+    assert (spec.label, spec.kind, spec.controller) == ("mine", "external", "examples.user_controller:GoToReference")
+    res = benchmark(["PID", "mine=examples.user_controller:GoToReference"], ["S1"], seeds=[1000, 1001],
+                    n_resamples=50, progress=False, out_dir=tmp_path / "b")
+    row = res.leaderboard.set_index("policy").loc["mine"]
+    env = gym.make("AUVFollow-S1-v0")
+    direct = evaluate(GoToReference(env.unwrapped.task_spec), "AUVFollow-S1-v0", [1000, 1001], progress=False)
+    assert row["kind"] == "external" and res.leaderboard.set_index("policy").loc["PID", "best_classical"] == "PID"
+    assert row["true_steady_mean_mean"] == pytest.approx(direct["true_steady_mean"].mean(), rel=1e-9)
+    assert not direct["terminated"].any()
+    # the CLI, from the repository root, and the report of that folder (which never imports it)
+    assert main(["benchmark", "--tiers", "S1", "--seeds", "1000", "--resamples", "50", "--no-progress",
+                 "--policies", "examples.user_controller:GoToReference", "--out", str(tmp_path / "c")]) == 0
+    assert "GoToReference" in (tmp_path / "c" / "leaderboard.md").read_text()
+
+
+@pytest.mark.parametrize("text,needle", [("nosuchmodule_xyz:Cls", "cannot be imported"),
+                                         ("examples.user_controller:Nope", "has no class 'Nope'")])
+def test_user_controller_errors_name_the_policy(text, needle, capsys):
+    with pytest.raises(ValueError, match=needle):
+        parse_policy(text)
+    with pytest.raises(SystemExit) as e:
+        main(["benchmark", "--tiers", "S1", "--seeds", "1000", "--no-progress", "--policies", text, "--out", "/tmp/x"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and text in err[0]
