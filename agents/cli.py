@@ -57,7 +57,14 @@ _TRUST = ("Run directories and model files from others must be trusted like code
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the description's line breaks and shows every argument's default."""
+    """Keeps the description's line breaks and shows every argument's default (not for on/off
+    flags such as ``--no-progress``, where "default: True" would read as the flag's state, nor
+    where the help text already says the default)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.nargs == 0 or "(default" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
 
 
 def _integer(text: str, lo: int, hi: float = math.inf) -> int:
@@ -335,27 +342,40 @@ def _add_benchmark_commands(sub: Any) -> None:
     """The ``benchmark``, ``report`` and ``sweep`` subcommands (each sets ``handler``)."""
     from agents.benchmark import DEFAULT_RESAMPLES
 
-    b = sub.add_parser("benchmark", help="score policies on the tiers' test seeds: per-episode table + leaderboard")
+    b = sub.add_parser("benchmark", help="score policies on the tiers' test seeds: per-episode table + leaderboard",
+                       formatter_class=_Formatter, epilog=_TRUST,
+                       description="Score policies on the tiers' published test seeds and write the per-episode "
+                                   "table, the leaderboard (.md/.csv/.png), one recorded episode per tier and policy "
+                                   "(traces.parquet) and benchmark.json (docs/benchmark.md). Costs: scripted "
+                                   "controllers and agents are quick; MPC takes about 28 min per tier on 100 seeds. "
+                                   "Quick look: --tiers Hard --policies PID PROPOSED --seeds 3000000-3000009.")
     b.add_argument("--policies", nargs="+", default=None, metavar="POLICY",
-                   help="controller names, 'classical' (every scripted controller), run directories, "
-                        "directories of runs, or label=run,run (default: classical)")
+                   help="controller names, 'classical' (every scripted controller, MPC included: slow), run "
+                        "directories, directories of runs, label=run,run, or [label=]module:Class (your own "
+                        "controller); NAME@Tier scores it on that tier only (default: classical)")
     b.add_argument("--tiers", nargs="+", default=["S4"], metavar="TIER",
                    help="S1..S4 (paper scenarios) and/or Easy, Medium, Hard, Extreme (v1 tiers)")
     b.add_argument("--seeds", type=_seeds, default=None,
-                   help="override the published test seeds (quick looks only), e.g. 1000-1009")
+                   help="override the published test seeds (quick looks only), e.g. 3000000-3000009 "
+                        "(default: each tier's 100 published test seeds)")
     b.add_argument("--out", default=None,
                    help=f"output directory (default: {SCRATCH_BENCH}, ignored by git; the committed leaderboard in "
                         "results/benchmark is rewritten only when you give --out results/benchmark)")
-    b.add_argument("--resamples", type=_positive_int, default=DEFAULT_RESAMPLES, help="bootstrap resamples")
+    b.add_argument("--resamples", type=_positive_int, default=DEFAULT_RESAMPLES, help="bootstrap resamples",
+                   metavar="N")
     b.add_argument("--bootstrap-seed", type=_nonneg_int, default=0, help="seed of the bootstrap resampling")
     b.add_argument("--unbatched", dest="batched", action="store_false",
                    help="one single-env episode at a time instead of one native vector env")
     b.add_argument("--cache", dest="cache_dir", default=None,
-                   help="directory of per-run episode caches (reused while the episode code equals git HEAD)")
-    b.add_argument("--no-progress", dest="progress", action="store_false")
+                   help="directory of per-run episode caches, reused while the episode code equals git HEAD "
+                        "(default: no cache)")
+    b.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     b.set_defaults(handler=_cmd_benchmark)
 
-    r = sub.add_parser("report", help="one self-contained HTML page from a benchmark directory")
+    r = sub.add_parser("report", help="one self-contained HTML page from a benchmark directory",
+                       formatter_class=_Formatter,
+                       description="One self-contained HTML page (plotly inline) from a benchmark directory, built "
+                                   "from its stored tables alone: it never loads a model file.")
     r.add_argument("--bench", default="results/benchmark", help="directory written by `auv-follow benchmark`")
     r.add_argument("--out", default=None, help="HTML file (default: <bench>/report.html)")
     r.add_argument("--replay-policy", default=None, help="policy label of the episode replay (default: best)")
@@ -364,7 +384,11 @@ def _add_benchmark_commands(sub: Any) -> None:
     r.add_argument("--replay-seed", type=int, default=None, help="test seed of the replay (default: the first)")
     r.set_defaults(handler=_cmd_report)
 
-    s = sub.add_parser("sweep", help="Ray Tune sweep: algorithm x hyperparameters x training seed x tier")
+    s = sub.add_parser("sweep", help="Ray Tune sweep: algorithm x hyperparameters x training seed x tier",
+                       formatter_class=_Formatter,
+                       description="A Ray Tune sweep over algorithm x hyperparameters x training seed x tier "
+                                   "(docs/benchmark.md); resumable: run the same command again after a crash or "
+                                   "Ctrl-C. Options override the --config file's keys only when given.")
     s.add_argument("--config", default=None, help="YAML search space (default: a small built-in grid)")
     s.add_argument("--name", default=None,
                    help="experiment name, one path component: the folder inside --storage and the resume key "
