@@ -5,7 +5,7 @@ The page embeds plotly.js inline (no CDN, no server: open the file) and shows
 * the leaderboard (the table of :func:`agents.benchmark.leaderboard_markdown`, as HTML, and a
   bar chart of the steady-state IQM with its 95 % CI per tier);
 * breakdowns over the drawn conditions: steady-state error vs latency and vs loss rate
-  (binned, IQM per bin, pooled over the benchmark's tiers);
+  (one panel per tier, binned within the tier, IQM per bin);
 * one episode per policy on the replay tier: forces over time with the force limits, and
   along-track / cross-track error over time (error of the follower from the true reference,
   in the true target's heading frame);
@@ -47,6 +47,18 @@ __all__ = ["write_report", "rollout_episode", "binned_breakdown"]
 
 _COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22",
            "#17becf")
+
+
+_PALETTE: dict[str, str] = {}
+
+
+def _color(policy: Any) -> str:
+    """The colour of a policy, the same in every figure of the page (set by :func:`write_report`
+    from the leaderboard's order; unknown labels get the next free colour)."""
+    key = str(policy)
+    if key not in _PALETTE:
+        _PALETTE[key] = _COLORS[len(_PALETTE) % len(_COLORS)]
+    return _PALETTE[key]
 
 
 def _txt(value: Any) -> str:
@@ -151,17 +163,31 @@ def _fig_leaderboard(board: pd.DataFrame):
 
 
 def _fig_breakdown(episodes: pd.DataFrame, condition: str, label: str):
+    """One panel per tier: the condition is binned within the tier (pooling tiers would plot
+    the tier, not the condition)."""
     import plotly.graph_objects as go
+    from plotly.subplots import make_subplots
 
-    fig = go.Figure()
-    if condition in episodes and episodes[condition].nunique() > 0:
-        bd = binned_breakdown(episodes, condition)
-        for k, (pol, d) in enumerate(bd.groupby("policy", sort=False)):
+    tiers = [str(t) for t in dict.fromkeys(episodes["tier"])] if "tier" in episodes else [""]
+    fig = make_subplots(rows=1, cols=len(tiers), subplot_titles=[_txt(t) for t in tiers], horizontal_spacing=0.06)
+    shown: set[str] = set()
+    for c, tier in enumerate(tiers, start=1):
+        ep = episodes[episodes["tier"].astype(str) == tier] if tier else episodes
+        if condition not in ep or ep[condition].nunique() == 0:
+            continue
+        bd = binned_breakdown(ep, condition)
+        for pol, d in bd.groupby("policy", sort=False):
             fig.add_trace(go.Scatter(x=d["bin_center"], y=d["iqm"], mode="lines+markers", name=_txt(pol),
-                                     line={"color": _COLORS[k % len(_COLORS)]}, customdata=d["episodes"],
-                                     hovertemplate="%{x:.3g}: %{y:.4f} m (%{customdata} episodes)<extra></extra>"))
-    fig.update_layout(title=f"Steady-state error vs {_txt(label)} (binned over the drawn conditions, IQM per bin)",
-                      xaxis_title=label, yaxis_title="IQM steady error [m]", yaxis_type="log", height=380)
+                                     legendgroup=str(pol), showlegend=str(pol) not in shown,
+                                     line={"color": _color(pol)}, customdata=d["episodes"],
+                                     hovertemplate="%{x:.3g}: %{y:.4f} m (%{customdata} episodes)<extra></extra>"),
+                          row=1, col=c)
+            shown.add(str(pol))
+        fig.update_xaxes(title_text=_txt(label), row=1, col=c)
+        fig.update_yaxes(type="log", row=1, col=c)
+    fig.update_yaxes(title_text="IQM steady error [m]", row=1, col=1)
+    fig.update_layout(title=f"Steady-state error vs {_txt(label)} (6 equal-width bins within each tier, IQM per bin)",
+                      height=400)
     return fig
 
 
@@ -175,7 +201,7 @@ def _fig_forces(runs: dict[str, pd.DataFrame]):
     for k, (pol, df) in enumerate(runs.items()):
         for j, (n, _) in enumerate(names, start=1):
             fig.add_trace(go.Scatter(x=df["time"], y=df[n], name=_txt(pol), legendgroup=str(k), showlegend=j == 1,
-                                     line={"color": _COLORS[k % len(_COLORS)], "width": 1}), row=j, col=1)
+                                     line={"color": _color(pol), "width": 1}), row=j, col=1)
     for j, ((n, unit), lim) in enumerate(zip(names, limits, strict=True), start=1):
         for sgn in (1, -1):
             fig.add_hline(y=sgn * lim, line_dash="dash", line_color="black", row=j, col=1)
@@ -193,7 +219,7 @@ def _fig_track(runs: dict[str, pd.DataFrame]):
     for k, (pol, df) in enumerate(runs.items()):
         for j, col in enumerate(("along_track", "cross_track"), start=1):
             fig.add_trace(go.Scatter(x=df["time"], y=df[col], name=_txt(pol), legendgroup=str(k), showlegend=j == 1,
-                                     line={"color": _COLORS[k % len(_COLORS)], "width": 1}), row=j, col=1)
+                                     line={"color": _color(pol), "width": 1}), row=j, col=1)
     fig.update_yaxes(title_text="along [m] (+: ahead)", row=1, col=1)
     fig.update_yaxes(title_text="cross [m] (+: to port)", row=2, col=1)
     fig.update_xaxes(title_text="time [s]", row=2, col=1)
@@ -266,9 +292,9 @@ def _table_html(board: pd.DataFrame) -> str:
         best = sub["best_classical"].iloc[0]
         parts.append(f"<h3>{html.escape(str(tier))}" + (f" (best classical: {html.escape(str(best))})" if
                                                         isinstance(best, str) else "") + "</h3>")
-        head = ["policy", "kind", "runs x episodes", "steady IQM [95 % CI]", "steady mean [95 % CI]",
-                "full IQM [95 % CI]", "full mean [95 % CI]", "vs best classical", "P(better) [95 % CI]",
-                "terminated"]
+        head = ["policy", "kind", "runs x episodes", "steady IQM [m] [95 % CI]", "steady mean [m] [95 % CI]",
+                "full IQM [m] [95 % CI]", "full mean [m] [95 % CI]", "IQM vs best classical [%]",
+                "P(better) [95 % CI]", "terminated [%]"]
         parts.append("<table class='leaderboard' data-tier='" + html.escape(str(tier)) + "'><thead><tr>" +
                      "".join(f"<th>{h}</th>" for h in head) + "</tr></thead><tbody>")
         for _, r in sub.sort_values(f"{m0}_iqm").iterrows():
@@ -341,6 +367,9 @@ def write_report(bench_dir: str | Path = "results/benchmark", out: str | Path | 
 
     res = load_result(bench_dir)
     board, episodes, prov, traces = res.leaderboard, res.episodes, res.provenance, res.traces
+    _PALETTE.clear()
+    for p in dict.fromkeys(board["policy"].astype(str)):
+        _color(p)
     tiers = [str(t) for t in dict.fromkeys(board["tier"])]
     if not tiers:
         raise ValueError(f"{Path(bench_dir) / 'leaderboard.csv'} has no rows")
