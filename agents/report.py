@@ -469,5 +469,10 @@ def write_report(bench_dir: str | Path = "results/benchmark", out: str | Path | 
             "</head><body>" + "\n".join(body) + "</body></html>")
     path = Path(out) if out is not None else Path(bench_dir) / "report.html"
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(page, encoding="utf-8")
+    tmp = path.with_name(f".{path.name}.partial")
+    try:
+        tmp.write_text(page, encoding="utf-8")
+        tmp.replace(path)  # an interrupted write never leaves half a page
+    finally:
+        tmp.unlink(missing_ok=True)
     return path

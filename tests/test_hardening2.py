@@ -459,3 +459,126 @@ def test_user_controller_errors_name_the_policy(text, needle, capsys):
         main(["benchmark", "--tiers", "S1", "--seeds", "1000", "--no-progress", "--policies", text, "--out", "/tmp/x"])
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and len(err) == 1 and text in err[0]
+
+
+# --- items 10, 12, 13, 17: messages, seeds, help, files ---------------------------------------------
+
+def test_refusals_are_one_line_before_any_work(tmp_path, capsys, monkeypatch):
+    def no_work(*a, **k):
+        raise AssertionError("work started before the refusal")
+
+    monkeypatch.setattr(B, "evaluate_tier", no_work)
+    a_file = tmp_path / "f.txt"
+    a_file.write_text("x")
+    cases = [(["benchmark", "--tiers", "S1", "--policies", "PID", "--out", str(a_file)], "--out"),
+             (["benchmark", "--tiers", "S1", "--policies", "PID", "--bootstrap-seed", "-1"], "--bootstrap-seed"),
+             (["report", "--bench", str(tmp_path), "--out", str(tmp_path)], "--out"),
+             (["report", "--bench", str(tmp_path / "none")], "episodes.parquet")]
+    for argv, needle in cases:
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert e.value.code == 2 and needle in err[-1], (argv, err)
+        assert not err[-1].startswith("Traceback")
+
+
+def test_ctrl_c_in_benchmark_and_report_is_one_line_exit_130(capsys, monkeypatch, tmp_path):
+    def interrupt(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(B, "evaluate_tier", interrupt)
+    assert main(["benchmark", "--tiers", "S1", "--policies", "PID", "--out", str(tmp_path / "b")]) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == \
+        "auv-follow benchmark: interrupted (nothing half-written was kept)"
+    import agents.report
+
+    monkeypatch.setattr(agents.report, "load_result", interrupt)
+    assert main(["report", "--bench", str(tmp_path)]) == 130
+
+
+def test_sweep_failures_exit_1_in_one_line(capsys, monkeypatch):
+    import agents.sweep as S
+
+    def all_failed(cfg):
+        raise S.SweepFailed("all 2 trial(s) of sweep 'x' failed; the last lines of the first error: boom")
+
+    monkeypatch.setattr(S, "sweep", all_failed)
+    with pytest.raises(SystemExit) as e:
+        main(["sweep", "--name", "x"])
+    assert e.value.code == 1 and capsys.readouterr().err.strip().splitlines() == [
+        "auv-follow sweep: error: all 2 trial(s) of sweep 'x' failed; the last lines of the first error: boom"]
+    df = pd.DataFrame({"val_true_steady_mean_iqm": [1.0]})
+    df.attrs["errors"] = 1
+    monkeypatch.setattr(S, "sweep", lambda cfg: df)
+    with pytest.raises(SystemExit) as e:
+        main(["sweep", "--name", "x"])
+    assert e.value.code == 1 and "1 trial(s) failed" in capsys.readouterr().err
+
+
+def test_config_error_survives_pickling_across_ray():
+    """A trial's ConfigError is re-raised as a ValueError; that one pickles (Ray ships errors)."""
+    exc = ValueError("trial ppo/S4/seed 0: hyperparameter x is invalid")
+    assert str(pickle.loads(pickle.dumps(exc))) == str(exc)
+    import inspect
+
+    import agents.sweep as S
+
+    assert "except ConfigError" in inspect.getsource(S.run_trial)
+
+
+def test_default_seeds_are_the_families_test_seeds():
+    from auv_follow_env.tiers import TIERS
+
+    assert B.default_test_seeds("AUVFollow-Hard-v1") == list(range(3_000_000, 3_000_010))
+    assert B.default_test_seeds("AUVFollow-Hard-v1") == list(TIERS["Hard"].test_seeds[:10])
+    assert B.default_test_seeds("AUVFollow-S4-v0") == list(range(1000, 1010))
+    assert B.default_test_seeds("AUVFollow-v1") == list(range(1000, 1010))
+
+
+def test_compare_of_a_v1_agent_uses_its_env_and_its_test_seeds(run_copy, tmp_path, capsys):
+    assert main(["compare", str(run_copy), "--controllers", "PID", "--seeds", "3000000", "--no-progress",
+                 "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "AUVFollow-Hard-v1" in out
+
+
+def test_training_on_the_ood_tier_warns(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["train", "--env", "AUVFollow-Extreme-v1", "--mode", "scratch", "--run-name", "a/b",
+              "--out", str(tmp_path)])
+    assert "out-of-distribution testing only" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("cmd", ["train", "evaluate", "compare", "benchmark", "report", "sweep"])
+def test_help_has_descriptions_and_no_true_defaults_of_flags(cmd, capsys):
+    with pytest.raises(SystemExit):
+        main([cmd, "--help"])
+    text = capsys.readouterr().out
+    assert "default: True" not in text and "default: False" not in text
+    if cmd in ("benchmark", "report", "sweep"):
+        assert "(default:" in text and len(text.split("options:")[0].splitlines()) > 3
+
+
+def test_expected_files():
+    import tomllib
+
+    assert "MIT License" in (ROOT / "LICENSE").read_text()
+    assert tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["license"] == "MIT"
+    cff = yaml.safe_load((ROOT / "CITATION.cff").read_text())
+    assert cff["cff-version"] == "1.2.0" and cff["license"] == "MIT" and cff["references"][0]["year"] == 2026
+    log = (ROOT / "CHANGELOG.md").read_text()
+    assert "1e-9 relative" in log and "v1 ids" in log
+    readme = (ROOT / "README.md").read_text()
+    assert "pip install" in readme and "Python >= 3.10" in readme and "AUV_FOLLOW_INSTALL_BROWSER" in readme
+
+
+# --- item 15: the tier claims are measured -------------------------------------------------------------
+
+def test_extreme_overlaps_hard_where_the_tables_say():
+    """By hand from auv_follow_env/tiers.py: Extreme's target_speed U[0.45, 0.65] overlaps Hard's
+    U[0.4, 0.6]; its update_period_s U[4, 6] shares the end 4 with Hard's U[2, 4]."""
+    from experiments.tier_claims import overlaps
+
+    found = {line.split(":")[0]: line for line in overlaps()}
+    assert "(overlap)" in found["target_speed"] and "(they share an end value)" in found["update_period_s"]
+    assert "burst_p_bad_good" not in found  # Hard U[0.3, 0.5], Extreme 0.25: outside
