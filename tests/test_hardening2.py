@@ -487,7 +487,8 @@ def test_ctrl_c_in_benchmark_and_report_is_one_line_exit_130(capsys, monkeypatch
         raise KeyboardInterrupt
 
     monkeypatch.setattr(B, "evaluate_tier", interrupt)
-    assert main(["benchmark", "--tiers", "S1", "--policies", "PID", "--out", str(tmp_path / "b")]) == 130
+    argv = ["benchmark", "--tiers", "S1", "--policies", "PID", "--no-progress", "--out", str(tmp_path / "b")]
+    assert main(argv) == 130
     assert capsys.readouterr().err.strip().splitlines()[-1] == \
         "auv-follow benchmark: interrupted (nothing half-written was kept)"
     import agents.report
@@ -582,3 +583,46 @@ def test_extreme_overlaps_hard_where_the_tables_say():
     found = {line.split(":")[0]: line for line in overlaps()}
     assert "(overlap)" in found["target_speed"] and "(they share an end value)" in found["update_period_s"]
     assert "burst_p_bad_good" not in found  # Hard U[0.3, 0.5], Extreme 0.25: outside
+
+
+def test_xss_report_runs_no_script_in_a_browser(bench, tmp_path):
+    """xss_kind_tier.sh + p3_browser.py: the page with the injected kind/tier/label, in headless
+    Chromium: no alert() call, no injected <img> or javascript: link (skipped without a browser)."""
+    from tests.test_report import CHROMEDRIVER, _ensure_browser
+
+    browser = _ensure_browser()
+    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed: pip install -e .[dev]")
+    from selenium.webdriver.chrome.service import Service
+    from selenium.webdriver.common.by import By
+
+    b = _copy(bench, tmp_path / "b")
+    p = b / "leaderboard.csv"
+    lines = p.read_text().splitlines()
+    head = lines[1].split(",")
+    row = lines[2].split(",")
+    row[head.index("kind")] = f'"{XSS}"'
+    row[head.index("policy")] = '"<a href=""javascript:alert(2)"">click</a>"'
+    lines[2] = ",".join(row)
+    row2 = list(row)
+    row2[head.index("tier")] = "\"<img src=x onerror=alert('tier')>\""
+    lines.append(",".join(row2))
+    p.write_text("\n".join(lines) + "\n")
+    page = write_report(b)
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = browser
+    for arg in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                f"--user-data-dir={tmp_path / 'profile'}"):
+        opts.add_argument(arg)
+    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
+    try:
+        driver.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument", {
+            "source": "window.__alerts=[];window.alert=function(m){window.__alerts.push(String(m));};"})
+        driver.set_page_load_timeout(120)
+        driver.get(page.resolve().as_uri())
+        assert driver.execute_script("return window.__alerts") == []
+        assert driver.find_elements(By.CSS_SELECTOR, "img") == []
+        assert driver.find_elements(By.CSS_SELECTOR, "a[href^='javascript']") == []
+        cells = [c.text for c in driver.find_elements(By.CSS_SELECTOR, "table.leaderboard td")]
+        assert XSS in cells  # shown as text
+    finally:
+        driver.quit()
