@@ -279,7 +279,10 @@ def _fig_replay(df: pd.DataFrame, title: str, every: int = 10, trail_s: float = 
              "args": [None, {"frame": {"duration": 50, "redraw": True}, "fromcurrent": True}]},
             {"label": "pause", "method": "animate",
              "args": [[None], {"frame": {"duration": 0, "redraw": False}, "mode": "immediate"}]}]}],
-        sliders=[{"steps": steps, "currentvalue": {"prefix": "t = ", "suffix": " s"}, "y": -0.05}])
+        # 120 step labels overlap: hide them (transparent font), show the current time instead
+        sliders=[{"steps": steps, "x": 0.12, "len": 0.88, "y": -0.05, "font": {"color": "rgba(0,0,0,0)"},
+                  "currentvalue": {"prefix": "t = ", "suffix": " s", "xanchor": "right",
+                                   "font": {"color": "#333", "size": 13}}}])
     return fig
 
 
