@@ -865,7 +865,11 @@ def plot_leaderboard(board: pd.DataFrame, path: str | Path, metric: str = "true_
         ax.set_yticks(y, sub["policy"], fontsize=8)
         ax.set_xscale("log")
         # labelled ticks at 1, 2, 5 x 10^k; no minor labels (they overlap on short ranges)
-        ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+        lo = float(np.nanmin(sub[f"{metric}_iqm_lo"].to_numpy()))
+        hi = float(np.nanmax(sub[f"{metric}_iqm_hi"].to_numpy()))
+        decades = math.log10(hi / lo) if lo > 0 and hi > lo else 0.0
+        subs = (1.0,) if decades > 1.5 else (1.0, 2.0, 5.0)  # 1-2-5 labels run together over wide ranges
+        ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(base=10.0, subs=subs))
         ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.tick_params(axis="x", labelsize=8)
