@@ -7,7 +7,14 @@ test_markdown_escapes_labels; 2 report_unpickle.sh -> test_report_never_loads_a_
 test_cache_key_*, test_broken_cache_entry_*; 6 p2_partial_write.py -> test_interrupted_write_*,
 test_mixed_folder_is_refused; 7 default_out_overwrite.sh -> test_benchmark_without_out_*;
 8 interrupted_run_in_benchmark.sh -> test_interrupted_run_is_refused, and
-test_statistics_contradicting_config_are_refused.
+test_statistics_contradicting_config_are_refused, p1_forces2.py -> test_force_limits_*,
+test_accepted_large_force_limits_stay_finite, test_scenario_on_a_tier_id_is_refused;
+9 p1_mixed.py, p1_mixed_autoreset.py, p1_partial_reset.py -> test_ranges_that_can_draw_*,
+test_ranges_whose_every_draw_is_valid_*; 10 -> test_refusals_are_one_line_*, test_ctrl_c_*,
+test_sweep_failures_*, test_corrupt_file_*, test_config_error_*, test_compare_of_a_v1_agent_*,
+test_training_on_the_ood_tier_warns; 11 -> test_user_controller_*; 13 ->
+test_default_seeds_*; 15 -> test_extreme_overlaps_hard_*; 17 -> test_help_*,
+test_expected_files; 1 in a browser -> test_xss_report_runs_no_script_in_a_browser.
 """
 
 from __future__ import annotations
