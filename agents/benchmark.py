@@ -36,6 +36,7 @@ import dataclasses
 import json
 import math
 import platform
+import re
 import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -51,7 +52,7 @@ from tqdm.auto import tqdm
 import auv_follow_env  # noqa: F401  (registers the ids)
 
 __all__ = ["V0_TIERS", "V1_TIERS", "V0_TEST_SEEDS", "LEADERBOARD_METRICS", "PolicySpec", "BenchmarkResult",
-           "resolve_tier", "tier_test_seeds", "parse_policy", "iqm", "stratified_bootstrap_ci",
+           "resolve_tier", "tier_test_seeds", "default_test_seeds", "parse_policy", "iqm", "stratified_bootstrap_ci",
            "probability_of_improvement", "evaluate_tier", "leaderboard", "benchmark", "provenance",
            "leaderboard_markdown", "plot_leaderboard", "goal_check", "load_result"]
 
@@ -220,6 +221,18 @@ def tier_test_seeds(tier: str) -> list[int]:
     return seeds
 
 
+def default_test_seeds(env_id: str, n: int = 10) -> list[int]:
+    """The seeds ``evaluate`` / ``compare`` use when none are given: the first ``n`` published
+    test seeds of the env's family - a v1 tier's own (:func:`tier_test_seeds`), and
+    :data:`V0_TEST_SEEDS` for the paper's scenarios and the custom ids ``AUVFollow-v0`` /
+    ``AUVFollow-v1`` (held out from every seed the training code uses)."""
+    try:
+        name, _ = resolve_tier(env_id)
+    except ValueError:
+        return list(V0_TEST_SEEDS[:n])
+    return tier_test_seeds(name)[:n]
+
+
 def _published_seeds(name: str, env_id: str) -> list[int] | None:
     """Find the test seeds the env package publishes for a v1 tier."""
     import importlib
@@ -257,8 +270,8 @@ class PolicySpec:
     """One leaderboard entry: a scripted controller, or a learned method with its runs."""
 
     label: str  #: name on the leaderboard
-    kind: str  #: "classical" (scripted controller) or "learned"
-    controller: str | None = None  #: controller name (classical)
+    kind: str  #: "classical" (scripted controller), "learned" or "external" (a user's ``module:Class``)
+    controller: str | None = None  #: controller name (classical) or ``module:Class`` (external)
     runs: tuple[str, ...] = ()  #: run directories (learned; one per training seed)
     tiers: tuple[str, ...] = ()  #: the tiers it is scored on (empty: every benchmarked tier)
 
@@ -276,7 +289,8 @@ def _is_run(p: Path) -> bool:
 
 def parse_policy(item: str | Path | PolicySpec) -> PolicySpec:
     """A :class:`PolicySpec` from a controller name, a run directory, a directory of runs
-    (one method, its runs = training seeds) or ``"label=run_a,run_b"``; a suffix
+    (one method, its runs = training seeds), ``"label=run_a,run_b"`` or a user's controller
+    class ``"[label=]module.path:ClassName"`` (:func:`_import_external`); a suffix
     ``@Tier[+Tier]`` scores it on those tiers only (e.g. an expensive ``MPC@Hard``).
 
     Raises:
@@ -293,6 +307,11 @@ def parse_policy(item: str | Path | PolicySpec) -> PolicySpec:
         return dataclasses.replace(parse_policy(base), tiers=tiers)
     if text in _controllers():
         return PolicySpec(label=text, kind="classical", controller=text)
+    ext = _EXTERNAL.match(text)
+    if ext is not None and not Path(text).exists():
+        target = ext.group("target")
+        _import_external(target)  # refuses an unknown module or class now, naming it
+        return PolicySpec(label=ext.group("label") or target.rsplit(":", 1)[1], kind="external", controller=target)
     label = None
     paths = [text]
     if "=" in text and not Path(text).exists():
@@ -311,11 +330,75 @@ def parse_policy(item: str | Path | PolicySpec) -> PolicySpec:
                              f"directory (with model.zip and config.yaml), a directory of runs, or label=run,run")
     if not runs:
         raise ValueError(f"policy={text!r} names no runs")
+    for r in runs:
+        _check_complete_run(Path(r), text)
     if label is None:
         from agents.train import load_agent
 
         label = load_agent(runs[0]).name if len(runs) == 1 else Path(runs[0]).parent.name
     return PolicySpec(label=label, kind="learned", runs=tuple(runs))
+
+
+#: ``[label=]module.path:ClassName`` - a user's controller class (see :func:`_import_external`)
+_EXTERNAL = re.compile(r"^(?:(?P<label>[^=]+)=)?(?P<target>[A-Za-z_][\w.]*:[A-Za-z_]\w*)$")
+
+
+def _import_external(target: str) -> type:
+    """The class ``module.path:ClassName`` (the current directory is searched too, so a file
+    next to you works with the console script). Its protocol: ``Class(task_spec)`` builds the
+    policy for one tier; ``predict(observation, state=None, episode_start=None,
+    deterministic=True) -> (action, state)`` takes a batch ``(n_envs, obs_dim)`` (and a single
+    observation) and returns actions in [-1, 1] of shape ``(n_envs, 3)``; an optional
+    ``reset()`` is called before each episode. Importing runs the module: name only code you
+    trust (building a report never imports it).
+
+    Raises:
+        ValueError: the module cannot be imported, or has no such class with a ``predict``.
+    """
+    import importlib
+    import os
+    import sys
+
+    module, _, cls_name = target.partition(":")
+    cwd = os.getcwd()
+    added = cwd not in sys.path
+    if added:
+        sys.path.append(cwd)
+    try:
+        mod = importlib.import_module(module)
+    except ImportError as exc:
+        raise ValueError(f"policy={target!r} is invalid: module {module!r} cannot be imported ({exc}); give "
+                         "module.path:ClassName of an installed module or one under the current directory") from None
+    finally:
+        if added:
+            sys.path.remove(cwd)
+    cls = getattr(mod, cls_name, None)
+    if not isinstance(cls, type) or not callable(getattr(cls, "predict", None)):
+        raise ValueError(f"policy={target!r} is invalid: {module} has no class {cls_name!r} with a predict method "
+                         "(see docs/benchmark.md, 'Your own controller')")
+    return cls
+
+
+def _check_complete_run(run: Path, policy: str) -> None:
+    """Refuse a run whose training did not finish: ``config.yaml`` records ``result.interrupted:
+    true`` (Ctrl-C or a signal) or has no ``result`` (still training, or killed)."""
+    import yaml
+
+    cfg_path = run / "config.yaml"
+    try:
+        cfg = yaml.safe_load(cfg_path.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ValueError(f"policy={policy!r}: {cfg_path} is not readable YAML ({type(exc).__name__})") from None
+    result = cfg.get("result") if isinstance(cfg, dict) else None
+    if not isinstance(result, dict):
+        raise ValueError(f"policy={policy!r}: run {run} has no 'result' in {cfg_path} (training still running or "
+                         "killed): only finished runs can be benchmarked")
+    if result.get("interrupted"):
+        steps = result.get("num_timesteps")
+        total = (cfg.get("run") or {}).get("total_timesteps") if isinstance(cfg.get("run"), dict) else None
+        raise ValueError(f"policy={policy!r}: run {run} is an interrupted training run (result.interrupted: true in "
+                         f"{cfg_path}, {steps} of {total} steps): finish it with `auv-follow train --resume` or "
+                         "leave it out")
 
 
 class _ObsPrefix:
@@ -357,6 +440,8 @@ def build_policy(spec: PolicySpec, run: str | None, env_id: str, task_spec: Any,
         from controllers import make_controller
 
         return make_controller(spec.controller, task_spec)
+    if spec.kind == "external":
+        return _import_external(spec.controller)(task_spec)
     from agents.train import load_agent
 
     agent = load_agent(run, name=spec.label)
@@ -401,7 +486,10 @@ def _max_distance(env_id: str) -> float:
 
 
 #: the code that decides an episode's numbers (the cache key includes its git hashes)
-_EPISODE_CODE = ("auv_follow_env", "controllers", "agents/residual.py", "agents/train.py")
+_EPISODE_CODE = ("auv_follow_env", "controllers", "agents/residual.py", "agents/train.py", "agents/benchmark.py",
+                 "agents/obs_stats.py")
+#: packages whose version can change an episode's numbers (part of the cache key)
+_EPISODE_PACKAGES = ("numpy", "numba", "gymnasium", "torch", "stable_baselines3", "sb3_contrib", "casadi", "scipy")
 
 
 def _code_fingerprint() -> str | None:
@@ -422,13 +510,73 @@ def _code_fingerprint() -> str | None:
     return out.stdout.strip().replace("\n", ",") if out.returncode == 0 else None
 
 
+def _package_versions() -> dict[str, str | None]:
+    """Installed versions of :data:`_EPISODE_PACKAGES` (None: not installed)."""
+    from importlib import metadata
+
+    out: dict[str, str | None] = {}
+    for name in _EPISODE_PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+#: columns every cached episode table must have
+_CACHE_COLUMNS = ("policy", "seed", "steps", "terminated", "return", "true_full_mean", "true_steady_mean")
+
+
+def _read_cache_entry(path: Path, label: str, seeds: Sequence[int]) -> pd.DataFrame | None:
+    """A cached episode table if it is complete and consistent (one row per seed, in order, of
+    this policy; finite errors for every episode that was not terminated), else None (with a
+    warning: the entry is recomputed and rewritten)."""
+    try:
+        d = pd.read_parquet(path)
+    except Exception as exc:  # noqa: BLE001 (pyarrow raises many kinds for a broken file)
+        warnings.warn(f"cache entry {path} is unreadable ({type(exc).__name__}): recomputing it", stacklevel=3)
+        return None
+    problem = None
+    missing = [c for c in _CACHE_COLUMNS if c not in d.columns]
+    if missing:
+        problem = f"lacks columns {missing}"
+    elif len(d) != len(seeds) or [int(x) for x in d["seed"]] != [int(x) for x in seeds]:
+        problem = f"has seeds {d['seed'].tolist()[:5]}... ({len(d)} rows), expected {len(seeds)} seeds"
+    elif set(d["policy"].astype(str)) != {label}:
+        problem = f"is of policy {sorted(set(d['policy'].astype(str)))}, expected {label!r}"
+    else:
+        ok = d["terminated"].astype(bool) | np.isfinite(d["true_full_mean"].astype(float))
+        if not ok.all() or not np.isfinite(d["steps"].astype(float)).all():
+            problem = "has non-finite errors for episodes that were not terminated"
+    if problem is not None:
+        warnings.warn(f"cache entry {path} {problem}: recomputing it", stacklevel=3)
+        return None
+    return d
+
+
+def _write_atomic_parquet(d: pd.DataFrame, path: Path) -> None:
+    """Write ``d`` to ``path`` via a temporary file and a rename (never a half-written file)."""
+    import os
+    import tempfile
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        d.to_parquet(tmp, index=False)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
 def _entry_key(spec: PolicySpec, run: str | None, env_id: str, seeds: Sequence[int], code: str) -> str:
     import hashlib
 
     h = hashlib.sha256()
     h.update(json.dumps({"env_id": env_id, "seeds": [int(x) for x in seeds], "kind": spec.kind,
                          "controller": spec.controller, "label": spec.label, "code": code,
-                         "numpy": np.__version__}).encode())
+                         "versions": _package_versions()}).encode())
     if run is not None:
         for f in ("model.zip", "vecnormalize.json", "vecnormalize.pkl", "config.yaml"):
             fp = Path(run) / f
@@ -489,7 +637,9 @@ def evaluate_tier(policies: Sequence[PolicySpec], tier: str, seeds: Sequence[int
         for i, k in enumerate(keys):
             f = Path(cache_dir) / f"{k}.parquet"
             if f.is_file():
-                cached[i] = pd.read_parquet(f)
+                d = _read_cache_entry(f, labels[i], seeds)
+                if d is not None:
+                    cached[i] = d
     todo = [i for i in range(len(entries)) if i not in cached]
     fresh: dict[int, pd.DataFrame] = {}
     if todo and batched:
@@ -499,9 +649,8 @@ def evaluate_tier(policies: Sequence[PolicySpec], tier: str, seeds: Sequence[int
     elif todo:
         fresh = {i: evaluate(objs[i], env_id, seeds, policy_name=labels[i], progress=progress) for i in todo}
     if code:
-        Path(cache_dir).mkdir(parents=True, exist_ok=True)
         for i, d in fresh.items():
-            d.to_parquet(Path(cache_dir) / f"{keys[i]}.parquet", index=False)
+            _write_atomic_parquet(d, Path(cache_dir) / f"{keys[i]}.parquet")
     df = pd.concat([cached[i] if i in cached else fresh[i] for i in range(len(entries))], ignore_index=True)
     df.insert(0, "env_id", env_id)
     df.insert(0, "tier", name)
@@ -636,12 +785,21 @@ class BenchmarkResult:
     leaderboard: pd.DataFrame
     provenance: dict[str, Any]
     files: dict[str, Path] = field(default_factory=dict)
+    traces: pd.DataFrame | None = None  #: per-step replay episodes (see :func:`replay_traces`)
 
 
 def _fmt_ci(est: float, lo: float, hi: float, digits: int = 4) -> str:
     if not np.isfinite(est):
         return "-"
     return f"{est:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+def _md(value: Any) -> str:
+    """A value as Markdown table text: HTML special characters as entities (a Markdown viewer
+    renders raw HTML), ``|`` escaped and line breaks removed."""
+    import html
+
+    return html.escape(" ".join(str(value).split()), quote=False).replace("|", "\\|")
 
 
 def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = None,
@@ -656,7 +814,7 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
     m0 = metrics[0]
     for tier, sub in board.groupby("tier", sort=False):
         best = sub["best_classical"].iloc[0]
-        lines += [f"## {tier}" + (f" (best classical: {best})" if best else ""), ""]
+        lines += [f"## {_md(tier)}" + (f" (best classical: {_md(best)})" if best else ""), ""]
         head = ["policy", "kind", "runs x episodes"]
         for m in metrics:
             short = m.replace("true_", "").replace("_mean", "")
@@ -666,7 +824,7 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
         head += ["gap closed"] if gap else []
         lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for _, r in sub.sort_values(f"{m0}_iqm").iterrows():
-            cells = [f"**{r['policy']}**" if r["policy"] == best else str(r["policy"]), r["kind"],
+            cells = [f"**{_md(r['policy'])}**" if r["policy"] == best else _md(r["policy"]), _md(r["kind"]),
                      f"{r['runs']} x {r['episodes'] // max(r['runs'], 1)}"]
             for m in metrics:
                 cells += [_fmt_ci(r[f"{m}_iqm"], r[f"{m}_iqm_lo"], r[f"{m}_iqm_hi"]),
@@ -681,9 +839,16 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
         lines.append("")
     if prov is not None:
         cfg = prov.get("config", {})
-        lines += ["## Provenance", "", "```json", json.dumps(prov, indent=1, default=str), "```", ""]
+        import re
+
+        text = json.dumps(prov, indent=1, default=str)
+        fence = "`" * max(3, 1 + max((len(m) for m in re.findall("`+", text)), default=0))  # longer than any run
+        lines += ["## Provenance", "", fence + "json", text, fence, ""]
         if "command" in cfg:
-            lines[-5:-5] = [f"Reproduce: `{cfg['command']}`", ""]
+            cmd = str(cfg["command"])
+            tick = "`" * (1 + max((len(m) for m in re.findall("`+", cmd)), default=0))
+            pad = " " if len(tick) > 1 else ""
+            lines[-5:-5] = [f"Reproduce: {tick}{pad}{cmd}{pad}{tick}", ""]
     return "\n".join(lines)
 
 
@@ -709,7 +874,11 @@ def plot_leaderboard(board: pd.DataFrame, path: str | Path, metric: str = "true_
         ax.set_yticks(y, sub["policy"], fontsize=8)
         ax.set_xscale("log")
         # labelled ticks at 1, 2, 5 x 10^k; no minor labels (they overlap on short ranges)
-        ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+        lo = float(np.nanmin(sub[f"{metric}_iqm_lo"].to_numpy()))
+        hi = float(np.nanmax(sub[f"{metric}_iqm_hi"].to_numpy()))
+        decades = math.log10(hi / lo) if lo > 0 and hi > lo else 0.0
+        subs = (1.0,) if decades > 1.5 else (1.0, 2.0, 5.0)  # 1-2-5 labels run together over wide ranges
+        ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(base=10.0, subs=subs))
         ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.tick_params(axis="x", labelsize=8)
@@ -739,15 +908,135 @@ def _write_parquet(df: pd.DataFrame, path: Path, prov: Mapping[str, Any]) -> Non
     pq.write_table(table.replace_schema_metadata(meta), path)
 
 
+#: the files :func:`benchmark` writes (key -> file name); each records the run's provenance
+OUTPUT_FILES: dict[str, str] = {"episodes": "episodes.parquet", "leaderboard_csv": "leaderboard.csv",
+                                "leaderboard_md": "leaderboard.md", "leaderboard_png": "leaderboard.png",
+                                "traces": "traces.parquet", "provenance": "benchmark.json"}
+
+
+def replay_traces(specs: Sequence[PolicySpec], seed_map: Mapping[str, Sequence[int]], *,
+                  progress: bool = False) -> pd.DataFrame:
+    """Per-step traces of one episode per (tier, policy): the tier's first seed, the policy's
+    first run (what ``auv-follow report`` plots: it never loads a model itself)."""
+    from agents.report import rollout_episode
+
+    frames = []
+    for tier, seeds in tqdm(list(seed_map.items()), desc="traces", disable=not progress, leave=False):
+        name, env_id = resolve_tier(tier)
+        probe = gym.make(env_id)
+        task_spec, width = probe.unwrapped.task_spec, int(probe.observation_space.shape[0])
+        probe.close()
+        for spec in specs:
+            if spec.tiers and name not in spec.tiers:
+                continue
+            try:
+                pol = build_policy(spec, spec.runs[0] if spec.runs else None, env_id, task_spec, width)
+            except IncompatiblePolicy:
+                continue
+            df = rollout_episode(pol, env_id, int(seeds[0]))
+            df.insert(0, "seed", int(seeds[0]))
+            df.insert(0, "policy", spec.label)
+            df.insert(0, "tier", name)
+            frames.append(df)
+    if not frames:
+        return pd.DataFrame(columns=["tier", "policy", "seed"])
+    out = pd.concat(frames, ignore_index=True)
+    floats = [c for c in out.columns if out[c].dtype == np.float64]
+    return out.astype({c: np.float32 for c in floats})  # plotted only: half the file size
+
+
+def write_outputs(out: Path, episodes: pd.DataFrame, board: pd.DataFrame, prov: Mapping[str, Any],
+                  traces: pd.DataFrame) -> dict[str, Path]:
+    """Write the benchmark files into ``out``: all of them into a temporary folder inside
+    ``out`` first, then each renamed into place (an interruption while writing leaves the
+    previous files untouched; :func:`load_result` refuses a folder whose files disagree)."""
+    import os
+    import shutil
+    import tempfile
+
+    out.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=".benchmark-partial-", dir=out))
+    try:
+        staged = {k: stage / name for k, name in OUTPUT_FILES.items()}
+        _write_parquet(episodes, staged["episodes"], prov)
+        _write_csv(board, staged["leaderboard_csv"], prov)
+        staged["leaderboard_md"].write_text(leaderboard_markdown(board, prov) + "\n")
+        plot_leaderboard(board, staged["leaderboard_png"], prov=prov)
+        _write_parquet(traces, staged["traces"], prov)
+        staged["provenance"].write_text(json.dumps(prov, indent=1, default=str) + "\n")
+        files = {}
+        for k, name in OUTPUT_FILES.items():
+            os.replace(staged[k], out / name)
+            files[k] = out / name
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    return files
+
+
+def _prov_key(prov: Any) -> str:
+    return json.dumps(prov, sort_keys=True, default=str)
+
+
 def load_result(out_dir: str | Path) -> BenchmarkResult:
-    """Read a benchmark written by :func:`benchmark` back (episodes, leaderboard, provenance)."""
+    """Read a benchmark written by :func:`benchmark` back (episodes, leaderboard, provenance,
+    and the replay traces if present).
+
+    Raises:
+        FileNotFoundError: a file of the benchmark is missing (names it).
+        ValueError: a file is corrupt, or the files come from different runs (names them).
+    """
+    import pyarrow.parquet as pq
+
     out = Path(out_dir)
-    if not (out / "episodes.parquet").is_file():
-        raise FileNotFoundError(f"{out}/episodes.parquet does not exist: run `auv-follow benchmark --out {out}`")
-    episodes = pd.read_parquet(out / "episodes.parquet")
-    board = pd.read_csv(out / "leaderboard.csv", comment="#")
-    prov = json.loads((out / "benchmark.json").read_text())
-    return BenchmarkResult(episodes, board, prov, {})
+    for name in ("episodes.parquet", "leaderboard.csv", "benchmark.json"):
+        if not (out / name).is_file():
+            raise FileNotFoundError(f"{out / name} does not exist: run `auv-follow benchmark --out {out}`")
+    try:
+        prov = json.loads((out / "benchmark.json").read_text())
+        if not isinstance(prov, dict) or not isinstance(prov.get("config"), dict):
+            raise ValueError("expected a mapping with a 'config' section")
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ValueError(f"{out / 'benchmark.json'} is not a benchmark provenance file: {_first_line(exc)}") from None
+    stamps: dict[str, Any] = {}
+
+    def parquet(name: str) -> pd.DataFrame:
+        try:
+            table = pq.read_table(out / name)
+        except Exception as exc:  # noqa: BLE001 (pyarrow raises many kinds for a broken file)
+            raise ValueError(f"{out / name} is not a readable parquet file: {_first_line(exc)}") from None
+        meta = (table.schema.metadata or {}).get(b"auv_follow_provenance")
+        stamps[name] = json.loads(meta) if meta else None
+        return table.to_pandas()
+
+    episodes = parquet("episodes.parquet")
+    try:
+        with open(out / "leaderboard.csv") as f:
+            first = f.readline()
+            stamps["leaderboard.csv"] = (json.loads(first[len("# provenance: "):])
+                                         if first.startswith("# provenance: ") else None)
+        board = pd.read_csv(out / "leaderboard.csv", comment="#")
+    except (UnicodeDecodeError, ValueError, pd.errors.ParserError) as exc:
+        raise ValueError(f"{out / 'leaderboard.csv'} is not a leaderboard CSV: {_first_line(exc)}") from None
+    traces = parquet("traces.parquet") if (out / "traces.parquet").is_file() else None
+    want = _prov_key(prov)
+    mixed = sorted(name for name, st in stamps.items() if st is not None and _prov_key(st) != want)
+    if mixed:
+        raise ValueError(f"{', '.join(str(out / m) for m in mixed)} and {out / 'benchmark.json'} are from different "
+                         f"benchmark runs (their provenance differs): run the benchmark again")
+    need = {"tier", "policy", "kind", "true_steady_mean_iqm", "true_steady_mean_iqm_lo", "true_steady_mean_iqm_hi"}
+    if not need <= set(board.columns):
+        raise ValueError(f"{out / 'leaderboard.csv'} lacks columns {sorted(need - set(board.columns))}")
+    lacks = sorted({"tier", "policy", "seed"} - set(episodes.columns))
+    if lacks:
+        raise ValueError(f"{out / 'episodes.parquet'} lacks columns {lacks}")
+    res = BenchmarkResult(episodes, board, prov, {})
+    res.traces = traces
+    return res
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return (text[0] if text else type(exc).__name__)[:200]
 
 
 def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: Iterable[str] = ("S4",), *,
@@ -764,7 +1053,9 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
         seeds: override the published test seeds (one list for all tiers, or per tier); for
             quick looks only - the leaderboard protocol is the published seeds.
         out_dir: if given, write ``episodes.parquet``, ``leaderboard.csv``, ``leaderboard.md``,
-            ``leaderboard.png`` and ``benchmark.json`` there (each records the provenance).
+            ``leaderboard.png``, ``traces.parquet`` (one replay episode per tier and policy, for
+            the report) and ``benchmark.json`` there (each records the provenance; written to
+            a temporary folder first, see :func:`write_outputs`).
         n_resamples, bootstrap_seed: bootstrap settings (fixed seed: reruns agree).
         batched: evaluate through the native vector env.
         command: the command line to record (the CLI fills it in).
@@ -813,15 +1104,6 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
     prov = provenance(config)
     result = BenchmarkResult(episodes, board, prov)
     if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        files = {"episodes": out / "episodes.parquet", "leaderboard_csv": out / "leaderboard.csv",
-                 "leaderboard_md": out / "leaderboard.md", "leaderboard_png": out / "leaderboard.png",
-                 "provenance": out / "benchmark.json"}
-        _write_parquet(episodes, files["episodes"], prov)
-        _write_csv(board, files["leaderboard_csv"], prov)
-        files["leaderboard_md"].write_text(leaderboard_markdown(board, prov) + "\n")
-        plot_leaderboard(board, files["leaderboard_png"], prov=prov)
-        files["provenance"].write_text(json.dumps(prov, indent=1, default=str) + "\n")
-        result.files = files
+        traces = replay_traces(specs, seed_map, progress=progress)
+        result.files = write_outputs(Path(out_dir), episodes, board, prov, traces)
     return result

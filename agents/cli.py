@@ -48,13 +48,23 @@ FLAGS: dict[str, str] = {
     "eval_seed": "--eval-seed", "resume_from": "--resume", "hyperparams_file": "--hyperparams",
     "hyperparams": "--hp", "verbose": "--verbose"}
 
+#: where ``auv-follow benchmark`` writes without --out (ignored by git, like experiments/outputs.py's scratch)
+SCRATCH_BENCH = "results/tmp/benchmark"
+
 _TRUST = ("Run directories and model files from others must be trusted like code: an SB3 model.zip can hold "
           "pickled objects (and --resume unpickles vecnormalize.pkl). Evaluation reads the observation statistics "
           "only from vecnormalize.json.")
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the description's line breaks and shows every argument's default."""
+    """Keeps the description's line breaks and shows every argument's default (not for on/off
+    flags such as ``--no-progress``, where "default: True" would read as the flag's state, nor
+    where the help text already says the default)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.nargs == 0 or "(default" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
 
 
 def _integer(text: str, lo: int, hi: float = math.inf) -> int:
@@ -186,7 +196,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("model", help="run directory or model .zip")
     e.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default=None,
                    help="env id (None: the one the agent was trained on)")
-    e.add_argument("--seeds", type=_seeds, default=list(range(1000, 1010)), help="test seeds, e.g. 1000-1009 or 1,2")
+    e.add_argument("--seeds", type=_seeds, default=None,
+                   help="test seeds, e.g. 1000-1009 or 1,2 (default: the first 10 published test seeds of the env: "
+                        "a v1 tier's own, 1000-1009 for the paper's scenarios)")
     e.add_argument("--out", default=None, help="CSV file for the per-episode metrics")
     e.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
 
@@ -195,10 +207,12 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Agents and the scripted controllers on the same env and seeds: "
                                    "<name>.csv, <name>_summary.csv, <name>.md and <name>.png in --out.")
     c.add_argument("models", nargs="*", help="run directories or model .zip files")
-    c.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default="AUVFollow-S4-v0", help="env id")
+    c.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default=None,
+                   help="env id (default: the one the agents were trained on, AUVFollow-S4-v0 without agents)")
     c.add_argument("--env-kwarg", dest="env_kwargs", type=_key_value, action="append", default=[],
                    metavar="KEY=VALUE", help="scenario override for every policy (repeatable)")
-    c.add_argument("--seeds", type=_seeds, default=list(range(1000, 1010)), help="test seeds, e.g. 1000-1009 or 1,2")
+    c.add_argument("--seeds", type=_seeds, default=None,
+                   help="test seeds, e.g. 1000-1009 or 1,2 (default: the first 10 published test seeds of the env)")
     c.add_argument("--controllers", nargs="*", choices=ALL_CONTROLLERS, default=list(ALL_CONTROLLERS),
                    help="scripted controllers to include (default: the paper's four and ours)")
     c.add_argument("--out", default="results/tmp/compare", help="directory for the outputs (created if needed)")
@@ -244,6 +258,10 @@ def _train(args: argparse.Namespace) -> None:
     kw.pop("command")
     kw["env_kwargs"] = dict(kw["env_kwargs"])
     kw["hyperparams"] = dict(kw["hyperparams"])
+    tier = auv_follow_env.TIERS.get(kw["env_id"].split("-")[1]) if kw["env_id"].count("-") == 2 else None
+    if tier is not None and tier.out_of_distribution:
+        print(f"auv-follow train: warning: {kw['env_id']} is for out-of-distribution testing only; train on "
+              "Easy/Medium/Hard and score on it", file=sys.stderr)
     try:
         run = train(TrainConfig(**kw))
     except ConfigError as exc:
@@ -256,8 +274,11 @@ def _evaluate(args: argparse.Namespace) -> None:
 
     if args.out:
         _check_writable(Path(args.out), "--out", want_dir=False)
+    from agents.benchmark import default_test_seeds
+
     agent = _load(args.model, "model")
-    df = evaluate_agent(agent, args.seeds, env_id=args.env_id, progress=args.progress)
+    seeds = args.seeds if args.seeds is not None else default_test_seeds(args.env_id or agent.env_id)
+    df = evaluate_agent(agent, seeds, env_id=args.env_id, progress=args.progress)
     cols = ["policy", "seed", "true_steady_mean", "true_steady_rmse", "true_full_mean", "return"]
     print(df[cols].to_string(index=False))
     print(f"mean true steady-state mean error: {df['true_steady_mean'].mean():.4f} m")
@@ -274,7 +295,16 @@ def _compare(args: argparse.Namespace) -> None:
     _check_writable(out, "--out", want_dir=True)
     if not args.name or "/" in args.name or args.name in (".", ".."):
         raise _Refused("--name", f"{args.name!r} is invalid: must be a file name stem without '/'")
+    from agents.benchmark import default_test_seeds
+
     agents = [_load(m, "models") for m in args.models]
+    if args.env_id is None:
+        envs = sorted({a.env_id for a in agents})
+        if len(envs) > 1:
+            raise _Refused("--env", f"the agents were trained on different envs {envs}: give the env to compare on")
+        args.env_id = envs[0] if envs else "AUVFollow-S4-v0"
+    if args.seeds is None:
+        args.seeds = default_test_seeds(args.env_id)
     try:
         _, summary = compare(agents, args.env_id, args.seeds, controllers=args.controllers,
                              env_kwargs=dict(args.env_kwargs) or None, out_dir=out, name=args.name,
@@ -312,25 +342,40 @@ def _add_benchmark_commands(sub: Any) -> None:
     """The ``benchmark``, ``report`` and ``sweep`` subcommands (each sets ``handler``)."""
     from agents.benchmark import DEFAULT_RESAMPLES
 
-    b = sub.add_parser("benchmark", help="score policies on the tiers' test seeds: per-episode table + leaderboard")
+    b = sub.add_parser("benchmark", help="score policies on the tiers' test seeds: per-episode table + leaderboard",
+                       formatter_class=_Formatter, epilog=_TRUST,
+                       description="Score policies on the tiers' published test seeds and write the per-episode "
+                                   "table, the leaderboard (.md/.csv/.png), one recorded episode per tier and policy "
+                                   "(traces.parquet) and benchmark.json (docs/benchmark.md). Costs: scripted "
+                                   "controllers and agents are quick; MPC takes about 28 min per tier on 100 seeds. "
+                                   "Quick look: --tiers Hard --policies PID PROPOSED --seeds 3000000-3000009.")
     b.add_argument("--policies", nargs="+", default=None, metavar="POLICY",
-                   help="controller names, 'classical' (every scripted controller), run directories, "
-                        "directories of runs, or label=run,run (default: classical)")
+                   help="controller names, 'classical' (every scripted controller, MPC included: slow), run "
+                        "directories, directories of runs, label=run,run, or [label=]module:Class (your own "
+                        "controller); NAME@Tier scores it on that tier only (default: classical)")
     b.add_argument("--tiers", nargs="+", default=["S4"], metavar="TIER",
                    help="S1..S4 (paper scenarios) and/or Easy, Medium, Hard, Extreme (v1 tiers)")
     b.add_argument("--seeds", type=_seeds, default=None,
-                   help="override the published test seeds (quick looks only), e.g. 1000-1009")
-    b.add_argument("--out", default="results/benchmark", help="output directory")
-    b.add_argument("--resamples", type=_positive_int, default=DEFAULT_RESAMPLES, help="bootstrap resamples")
-    b.add_argument("--bootstrap-seed", type=int, default=0)
+                   help="override the published test seeds (quick looks only), e.g. 3000000-3000009 "
+                        "(default: each tier's 100 published test seeds)")
+    b.add_argument("--out", default=None,
+                   help=f"output directory (default: {SCRATCH_BENCH}, ignored by git; the committed leaderboard in "
+                        "results/benchmark is rewritten only when you give --out results/benchmark)")
+    b.add_argument("--resamples", type=_positive_int, default=DEFAULT_RESAMPLES, help="bootstrap resamples",
+                   metavar="N")
+    b.add_argument("--bootstrap-seed", type=_nonneg_int, default=0, help="seed of the bootstrap resampling")
     b.add_argument("--unbatched", dest="batched", action="store_false",
                    help="one single-env episode at a time instead of one native vector env")
     b.add_argument("--cache", dest="cache_dir", default=None,
-                   help="directory of per-run episode caches (reused while the episode code equals git HEAD)")
-    b.add_argument("--no-progress", dest="progress", action="store_false")
+                   help="directory of per-run episode caches, reused while the episode code equals git HEAD "
+                        "(default: no cache)")
+    b.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     b.set_defaults(handler=_cmd_benchmark)
 
-    r = sub.add_parser("report", help="one self-contained HTML page from a benchmark directory")
+    r = sub.add_parser("report", help="one self-contained HTML page from a benchmark directory",
+                       formatter_class=_Formatter,
+                       description="One self-contained HTML page (plotly inline) from a benchmark directory, built "
+                                   "from its stored tables alone: it never loads a model file.")
     r.add_argument("--bench", default="results/benchmark", help="directory written by `auv-follow benchmark`")
     r.add_argument("--out", default=None, help="HTML file (default: <bench>/report.html)")
     r.add_argument("--replay-policy", default=None, help="policy label of the episode replay (default: best)")
@@ -339,16 +384,28 @@ def _add_benchmark_commands(sub: Any) -> None:
     r.add_argument("--replay-seed", type=int, default=None, help="test seed of the replay (default: the first)")
     r.set_defaults(handler=_cmd_report)
 
-    s = sub.add_parser("sweep", help="Ray Tune sweep: algorithm x hyperparameters x training seed x tier")
+    s = sub.add_parser("sweep", help="Ray Tune sweep: algorithm x hyperparameters x training seed x tier",
+                       formatter_class=_Formatter,
+                       description="A Ray Tune sweep over algorithm x hyperparameters x training seed x tier "
+                                   "(docs/benchmark.md); resumable: run the same command again after a crash or "
+                                   "Ctrl-C. Options override the --config file's keys only when given.")
     s.add_argument("--config", default=None, help="YAML search space (default: a small built-in grid)")
-    s.add_argument("--name", default="auv-follow-sweep", help="experiment name (resume key)")
-    s.add_argument("--storage", default="results/sweeps", help="directory of the Ray Tune experiment")
+    s.add_argument("--name", default=None,
+                   help="experiment name, one path component: the folder inside --storage and the resume key "
+                        "(default: the config's name, else auv-follow-sweep)")
+    s.add_argument("--storage", default=None,
+                   help="directory of the Ray Tune experiment (default: the config's storage, else results/sweeps)")
     s.add_argument("--address", default=None, help="existing Ray cluster (default: RAY_ADDRESS or local Ray)")
-    s.add_argument("--timesteps", type=_positive_int, default=None, help="env steps per trial")
-    s.add_argument("--chunks", type=_positive_int, default=None, help="reports (and checkpoints) per trial")
-    s.add_argument("--num-samples", type=_positive_int, default=1, help="samples of the search space")
-    s.add_argument("--cpus-per-trial", type=_positive_float, default=1.0)
-    s.add_argument("--no-resume", dest="resume", action="store_false", help="start afresh even if resumable")
+    s.add_argument("--timesteps", type=_positive_int, default=None,
+                   help="env steps per trial (default: the config's, else 20000)")
+    s.add_argument("--chunks", type=_positive_int, default=None,
+                   help="reports (and checkpoints) per trial (default: the config's, else 2)")
+    s.add_argument("--num-samples", type=_positive_int, default=None,
+                   help="samples of the search space (default: the config's, else 1)")
+    s.add_argument("--cpus-per-trial", type=_positive_float, default=None,
+                   help="CPUs Tune reserves per trial (default: the config's, else 1)")
+    s.add_argument("--no-resume", dest="resume", action="store_const", const=False, default=None,
+                   help="start afresh even if the experiment can be resumed (default: resume)")
     s.set_defaults(handler=_cmd_sweep)
 
 
@@ -357,6 +414,10 @@ def _cmd_benchmark(args: argparse.Namespace) -> None:
 
     from agents.benchmark import benchmark, goal_check
 
+    if args.out is None:
+        args.out = SCRATCH_BENCH
+        print(f"writing to {SCRATCH_BENCH} (ignored by git); give --out to choose the place", file=sys.stderr)
+    _check_writable(Path(args.out), "--out", want_dir=True)
     res = benchmark(args.policies, args.tiers, seeds=args.seeds, out_dir=args.out, n_resamples=args.resamples,
                     bootstrap_seed=args.bootstrap_seed, batched=args.batched, progress=args.progress,
                     cache_dir=args.cache_dir,
@@ -370,24 +431,51 @@ def _cmd_benchmark(args: argparse.Namespace) -> None:
 def _cmd_report(args: argparse.Namespace) -> None:
     from agents.report import write_report
 
+    if args.out is not None:
+        _check_writable(Path(args.out), "--out", want_dir=False)
     path = write_report(args.bench, args.out, replay_policy=args.replay_policy, replay_tier=args.replay_tier,
                         replay_seed=args.replay_seed)
     print(f"report: {path}")
 
 
 def _cmd_sweep(args: argparse.Namespace) -> None:
-    from agents.sweep import SweepConfig, sweep
+    from agents.sweep import SweepConfig, SweepFailed, sweep
 
-    cfg = SweepConfig.from_args(args)
-    best = sweep(cfg)
+    try:
+        cfg = SweepConfig.from_args(args)
+    except TypeError as exc:  # a YAML value of the wrong type reaching the dataclass
+        raise _Refused("--config", str(exc)) from None
+    try:
+        best = sweep(cfg)
+    except SweepFailed as exc:
+        print(f"auv-follow sweep: error: {exc}", file=sys.stderr)
+        raise SystemExit(1) from None
     print(best.to_string() if hasattr(best, "to_string") else best)
+    if best.attrs.get("errors"):
+        print(f"auv-follow sweep: {best.attrs['errors']} trial(s) failed: run the same command again to resume them",
+              file=sys.stderr)
+        raise SystemExit(1)
 
 
 def _run_handler(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    """Run benchmark / report / sweep: a refusal is one line naming the argument or file (exit
+    code 2); Ctrl-C prints one line and returns 130 (nothing half-written is left in place)."""
     try:
         args.handler(args)
-    except (ValueError, FileNotFoundError) as exc:
-        parser.error(str(exc))
+    except _Refused as exc:
+        flag, msg = exc.args
+        print(f"auv-follow {args.command}: error: argument {flag}: {msg}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except (ValueError, FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as exc:
+        msg = " ".join(str(exc).split())
+        print(f"auv-follow {args.command}: error: {msg}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print(f"auv-follow {args.command}: interrupted (nothing half-written was kept)", file=sys.stderr)
+        return 130
+    except MemoryError:
+        print(f"auv-follow {args.command}: error: out of memory: use fewer seeds or policies", file=sys.stderr)
+        raise SystemExit(2) from None
     return 0
 
 

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["ObsStats", "FORMAT", "write_obs_stats", "read_obs_stats", "stats_from_vecnormalize",
-           "json_path_for", "convert_pickle", "main"]
+           "json_path_for", "convert_pickle", "check_against_config", "main"]
 
 #: identifies the file format (written into every file, checked on reading)
 FORMAT = "auv-follow/obs-normalization/v1"
@@ -122,6 +122,29 @@ def read_obs_stats(path: str | Path) -> ObsStats:
     return ObsStats(norm_obs=data["norm_obs"], mean=arrays["mean"], var=arrays["var"],
                     count=_number(data, "count", path, positive=False),
                     clip_obs=_number(data, "clip_obs", path), epsilon=_number(data, "epsilon", path))
+
+
+#: SB3 VecNormalize defaults (what a run's ``normalize`` section means when it omits a key)
+_VECNORM_DEFAULTS = {"norm_obs": True, "clip_obs": 10.0, "epsilon": 1e-8}
+
+
+def check_against_config(stats: ObsStats, normalize: Any, stats_path: str | Path, config_path: str | Path) -> None:
+    """Refuse statistics that contradict the run's ``config.yaml`` ``normalize`` section
+    (``norm_obs``, ``clip_obs``, ``epsilon``; SB3's defaults where the section omits them).
+
+    Raises:
+        ValueError: naming both files, the field and the two values.
+    """
+    if not isinstance(normalize, dict):
+        return
+    for key, default in _VECNORM_DEFAULTS.items():
+        want = normalize.get(key, default)
+        got = getattr(stats, key)
+        same = (bool(want) == bool(got)) if key == "norm_obs" else (
+            isinstance(want, (int, float)) and math.isclose(float(want), float(got), rel_tol=1e-12, abs_tol=0.0))
+        if not same:
+            raise ValueError(f"{stats_path}: {key}={got!r} contradicts {config_path} (normalize.{key}={want!r}): "
+                             "the statistics are not this run's")
 
 
 def json_path_for(pickle_path: str | Path) -> Path:

@@ -46,7 +46,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-__all__ = ["SweepConfig", "sweep", "run_trial", "VALIDATION_SEEDS", "DEFAULT_GRID", "param_space"]
+__all__ = ["SweepConfig", "SweepFailed", "sweep", "run_trial", "VALIDATION_SEEDS", "DEFAULT_GRID", "param_space"]
 
 #: validation seeds of every tier (our choice: 900-919; test seeds are published separately
 #: and checked to be disjoint, training envs start at seed + i for small seeds)
@@ -82,6 +82,16 @@ class SweepConfig:
         from agents.benchmark import resolve_tier
         from agents.train import ALGOS, MODES
 
+        name = self.name
+        if not isinstance(name, str) or not name.strip() or name in (".", "..") or any(
+                c in name for c in ("/", "\\", "\0")) or name != name.strip():
+            raise ValueError(f"name={name!r} is invalid: must be one path component (no '/', '\\', '.' or '..'), "
+                             f"the experiment folder inside storage")
+        if not isinstance(self.storage, str) or not self.storage:
+            raise ValueError(f"storage={self.storage!r} is invalid: must be a directory or a URI")
+        for fname in ("grid", "search"):
+            if not isinstance(getattr(self, fname), dict):
+                raise ValueError(f"{fname}={getattr(self, fname)!r} is invalid: must be a mapping")
         for k, v in self.grid.items():
             if not isinstance(v, list) or not v:
                 raise ValueError(f"grid[{k!r}]={v!r} is invalid: must be a non-empty list")
@@ -114,7 +124,13 @@ class SweepConfig:
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"sweep config {p} does not exist")
-        data = yaml.safe_load(p.read_text()) or {}
+        try:
+            data = yaml.safe_load(p.read_text()) or {}
+        except (yaml.YAMLError, UnicodeDecodeError) as exc:
+            raise ValueError(f"sweep config {p} is not valid YAML: {' '.join(str(exc).split())[:200]}") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"sweep config {p} is invalid: must be a mapping of keys "
+                             f"{sorted(cls.__dataclass_fields__)}")
         unknown = sorted(set(data) - {f for f in cls.__dataclass_fields__})
         if unknown:
             raise ValueError(f"sweep config {p} has unknown keys {unknown}: valid keys are "
@@ -184,7 +200,7 @@ def run_trial(config: dict[str, Any]) -> None:
     from ray import tune
 
     from agents.benchmark import resolve_tier
-    from agents.train import TrainConfig, train
+    from agents.train import ConfigError, TrainConfig, train
 
     fixed = config["_fixed"]
     tier = config.get("tier", "S4")
@@ -207,7 +223,10 @@ def run_trial(config: dict[str, Any]) -> None:
                           resume_from=str(model) if model is not None else None, out_dir=str(work),
                           run_name=f"chunk{i}", checkpoint_freq=0, eval_freq=0, progress_bar=False,
                           tensorboard=False, **extra)
-        run = train(cfg)
+        try:
+            run = train(cfg)
+        except ConfigError as exc:  # its two-argument constructor does not survive Ray's pickling
+            raise ValueError(f"trial {config.get('algo', 'ppo')}/{tier}/seed {config.get('seed', 0)}: {exc}") from None
         model = run / "model.zip"
         with open(run / "config.yaml") as f:
             steps = int(yaml.safe_load(f)["result"]["num_timesteps"])
@@ -237,8 +256,11 @@ def sweep(cfg: SweepConfig) -> pd.DataFrame:
     """Run (or resume) the sweep and return one row per trial, best first (lowest validation
     IQM steady-state error); also written to ``<storage>/<name>/trials.csv``.
 
+    ``df.attrs["errors"]`` is the number of trials that errored (the CLI exits with code 1 then).
+
     Raises:
         ValueError: invalid configuration (names the field).
+        SweepFailed: every trial failed.
     """
     cfg.validate()
     from ray import tune
@@ -258,6 +280,11 @@ def sweep(cfg: SweepConfig) -> pd.DataFrame:
                            tune_config=tune.TuneConfig(num_samples=cfg.num_samples),
                            run_config=run_config)
     results = tuner.fit()
+    errors = [r.error for r in results if r.error is not None]
+    if len(errors) == len(results):
+        first = " ".join(str(errors[0]).split())[-400:] if errors else "no trials ran"
+        raise SweepFailed(f"all {len(results)} trial(s) of sweep {cfg.name!r} failed; the last lines of the first "
+                          f"error: {first}")
     df = results.get_dataframe()
     # the trial's last checkpoint is a complete run directory (model.zip, vecnormalize.pkl,
     # config.yaml): what `auv-follow benchmark --policies` takes
@@ -275,7 +302,11 @@ def sweep(cfg: SweepConfig) -> pd.DataFrame:
         df.to_csv(exp / "trials.csv", index=False)
         (exp / "sweep.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(asdict(cfg), default=str)),
                                                        sort_keys=False))
-    errors = [r.error for r in results if r.error is not None]
+    df.attrs["errors"] = len(errors)
     if errors:
         print(f"{len(errors)} trial(s) errored; run the same command again to resume them: {errors[0]}")
     return df
+
+
+class SweepFailed(RuntimeError):
+    """Every trial of a sweep failed (the message has the first error)."""

@@ -46,7 +46,7 @@ import numpy as np
 import yaml
 
 import auv_follow_env
-from agents.obs_stats import ObsStats, read_obs_stats, stats_from_vecnormalize, write_obs_stats
+from agents.obs_stats import ObsStats, check_against_config, read_obs_stats, stats_from_vecnormalize, write_obs_stats
 from agents.residual import (
     DEFAULT_CONTROLLER,
     DEFAULT_HISTORY_LEN,
@@ -122,13 +122,14 @@ def check_tier_training_seeds(env_id: str, seeds: list[int]) -> None:
         check(seeds, name=f"training seeds of {env_id}")
 
 
-def _eval_zoo(value: Any) -> Any:
-    """rl-zoo writes dicts as strings like ``"dict(net_arch=[64, 64])"``; evaluate those with
-    nothing but ``dict`` and ``torch.nn`` in scope."""
+def _eval_zoo(value: Any, key: str = "value") -> Any:
+    """rl-zoo writes dicts as strings like ``"dict(net_arch=[64, 64])"``; read those without
+    ``eval`` (:func:`agents.zoo_parse.parse_zoo_value`: literals, ``dict(...)`` and
+    ``nn.<activation>`` only)."""
     if isinstance(value, str) and value.strip().startswith("dict("):
-        import torch.nn as nn
+        from agents.zoo_parse import parse_zoo_value
 
-        return eval(value, {"__builtins__": {}}, {"dict": dict, "nn": nn})  # noqa: S307 (trusted YAML)
+        return parse_zoo_value(value, f"hyperparameter {key}")
     return value
 
 
@@ -136,7 +137,7 @@ def load_hyperparams(algo: str, env_id: str, path: str | Path | None = None,
                      overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """Hyperparameters for ``algo`` on ``env_id`` from an rl-zoo3-format YAML file
     (``agents/hyperparams/<algo>.yml`` by default): the ``default`` section updated by the
-    env id's section, then by ``overrides``. Strings ``"dict(...)"`` are evaluated."""
+    env id's section, then by ``overrides``. Strings ``"dict(...)"`` are parsed (never evaluated)."""
     _algo_class(algo)
     path = Path(path) if path is not None else HYPERPARAMS_DIR / f"{algo}.yml"
     if not path.is_file():
@@ -149,7 +150,7 @@ def load_hyperparams(algo: str, env_id: str, path: str | Path | None = None,
     hp = dict(table.get("default") or {})
     hp.update(table.get(env_id) or {})
     hp.update(overrides or {})
-    return {k: _eval_zoo(v) for k, v in hp.items()}
+    return {k: _eval_zoo(v, k) for k, v in hp.items()}
 
 
 def versions() -> dict[str, str]:
@@ -968,6 +969,7 @@ def load_agent(path: str | Path, name: str | None = None) -> Agent:
                                     f"trained with normalize={norm} ({cfg_path}) and gives wrong actions without "
                                     f"them{convert}")
         stats = read_obs_stats(json_path)
+        check_against_config(stats, norm, json_path, cfg_path)
     try:
         model = _algo_class(config["run"]["algo"]).load(str(model_path), device="cpu")
     except Exception as exc:  # noqa: BLE001 (zipfile, pickle, torch and SB3 errors alike)

@@ -221,6 +221,9 @@ BOUNDS: Mapping[str, tuple[float, float, str]] = MappingProxyType({
 MAX_SUBSTEPS = 100  #: physics_substeps in [1, MAX_SUBSTEPS]
 MAX_STEPS = 200_000  #: episode_s / dt at most this many control steps
 MAX_FORCE = 1e5  #: force limits in (0, MAX_FORCE] [N, N, N m]
+#: |h lambda| bound of the RK4 integrator's stability check (its region contains the left
+#: half-disk of radius 2.61; 2.5 keeps a margin)
+RK4_RADIUS = 2.5
 MAX_OFFSET = 100.0  #: |p_d| components at most this [m]
 
 
@@ -291,6 +294,19 @@ class EnvConfig:
         _require(h * rate <= 1.0, "physics_substeps", self.physics_substeps,
                  f"large enough that dt / physics_substeps * (fastest damping rate {rate:.3g} 1/s) <= 1 "
                  f"(now {h * rate:.3g}); lower dt={self.dt} or the mismatch, or raise physics_substeps")
+        # yaw coupling: the surge/sway block has eigenvalues -damping +- i r, and |r| can reach
+        # F_r / N_r (true, least damped); RK4 is stable for |h lambda| <= 2.61 in the left half-plane
+        least = 1.0 + min(self.mismatch, self.ranges.get("mismatch", (self.mismatch, 0.0))[0])
+        r_max = self.force_limits[2] / (v.N_r * least)
+        z = h * math.hypot(rate, r_max)
+        if z > RK4_RADIUS:
+            need = math.ceil(self.dt * math.hypot(rate, r_max) / RK4_RADIUS)
+            raise ValueError(
+                f"force_limits={tuple(self.force_limits)!r} is invalid with physics_substeps={self.physics_substeps} "
+                f"and dt={self.dt} s: the yaw rate can reach F_r / N_r = {r_max:.3g} rad/s and the integrator "
+                f"needs dt / physics_substeps * {math.hypot(rate, r_max):.3g} 1/s <= {RK4_RADIUS} (now {z:.3g}); "
+                f"lower F_r or raise physics_substeps to >= {need}"
+                + ("" if need <= MAX_SUBSTEPS else f" (more than the maximum {MAX_SUBSTEPS}: lower F_r or dt)"))
 
     @property
     def version(self) -> str:
@@ -563,7 +579,7 @@ def _parse_overrides(overrides: Mapping[str, object], allowed: tuple[str, ...], 
                 raise ValueError(f"physics_substeps={v!r} is invalid: must be an integer in [1, {MAX_SUBSTEPS}]")
             v = int(v)
         elif k in CONDITION_CHOICES:
-            if v not in CONDITION_CHOICES[k]:
+            if not isinstance(v, str) or v not in CONDITION_CHOICES[k]:
                 raise ValueError(f"{k}={v!r} is invalid: must be one of {list(CONDITION_CHOICES[k])}")
         elif version == "v1" and k in RANGEABLE and isinstance(v, (tuple, list, np.ndarray)):
             lo, hi = as_real_tuple(k, v, 2)
@@ -578,6 +594,34 @@ def _parse_overrides(overrides: Mapping[str, object], allowed: tuple[str, ...], 
 def _condition_defaults(sc: Scenario, dt: float, delay_s: float) -> dict[str, float]:
     return {"update_period_s": dt, "latency_s": delay_s, "target_speed": sc.target.speed,
             "target_surge_amp": sc.target.surge_amp, "target_yaw_rate_amp": sc.target.yaw_rate_amp}
+
+
+def _check_every_draw(rng_map: Mapping[str, tuple[float, float]], cond_kw: Mapping[str, object]) -> None:
+    """Refuse fixed / ranged combinations under which some per-reset draw breaks a rule between
+    two fields (fields are drawn independently, so the worst pair of ends must pass)."""
+    def span(name: str) -> tuple[float, float]:
+        if name in rng_map:
+            return rng_map[name]
+        v = float(cond_kw.get(name, CONDITION_INDEX[name].default))  # type: ignore[arg-type]
+        return v, v
+
+    def shown(name: str) -> str:
+        return f"{name}={rng_map[name]!r} (drawn per reset)" if name in rng_map else f"{name}={span(name)[0]!r}"
+
+    rules = [("period_jitter_s", "update_period_s", lambda a, b: a < b, "<",
+              "sends must stay in order"),
+             ("target_speed_min", "target_speed_max", lambda a, b: a <= b, "<=", "")]
+    if cond_kw.get("latency_model", "constant") == "uniform":
+        rules.append(("latency_spread_s", "latency_s", lambda a, b: a <= b, "<=",
+                      "the uniform latency must stay >= 0"))
+    for a, b, ok, op, why in rules:
+        if a not in rng_map and b not in rng_map:
+            continue  # two fixed values: Condition checks them
+        worst_a, worst_b = span(a)[1], span(b)[0]
+        if not ok(worst_a, worst_b):
+            raise ValueError(f"{shown(a)} and {shown(b)} are invalid together: a reset can draw {a}={worst_a:g} "
+                             f"and {b}={worst_b:g}, but every draw must have {a} {op} {b}"
+                             + (f" ({why})" if why else "") + ": narrow the ranges so that they cannot overlap")
 
 
 def make_config(scenario: str = "S4", disturbance: str | None = None, *, version: str = "v0",
@@ -643,6 +687,7 @@ def make_config(scenario: str = "S4", disturbance: str | None = None, *, version
             if k == "mismatch":
                 _in_range("mismatch", r[end], *BOUNDS["mismatch"][:2])
         Condition(**{**cond_kw, **{k: r[end] for k, r in rng_map.items() if k != "mismatch"}})
+    _check_every_draw(rng_map, cond_kw)
     cond = Condition(**{**cond_kw, **{k: 0.5 * (r[0] + r[1]) for k, r in rng_map.items() if k != "mismatch"}})
     if "mismatch" in rng_map:
         env_kw["mismatch"] = 0.5 * sum(rng_map["mismatch"])

@@ -7,13 +7,14 @@ fixed ones. The drawn condition is ``info["condition"]`` at reset.
 The numbers are ours (the paper has a constant delay and a perfect channel). They follow
 what acoustic positioning of a nearby vehicle looks like: USBL / modem fixes every 0.5-6 s,
 latencies of 0.5-5 s from processing and medium-access slots (propagation over a few metres
-is negligible), 0-35 % of packets lost with bursts (multipath, bubbles, thruster noise),
+is negligible), i.i.d. loss probabilities of 0-35 % plus bursts (multipath, bubbles, thruster
+noise; measured shares of sends lost in experiments/tier_claims.py),
 position noise of centimetres plus about 1-3 % of range; a target whose speed and turn rate
 wander as Ornstein-Uhlenbeck processes (no fixed period a history can lock onto); a
 Gauss-Markov current with a wandering direction; coloured disturbances; thrusters with a
 first-order lag and a rate limit. Difficulty rises monotonically from Easy to Hard in every
-field; Extreme lies outside Hard's ranges everywhere and is for out-of-distribution
-testing only.
+field; Extreme is harder than Hard in every field (six of its ranges overlap Hard's, four
+share an end value) and is for out-of-distribution testing only.
 
 Test seeds: each tier publishes 100 seeds (:attr:`Tier.test_seeds`) on which it is scored.
 Training code must not use them; :func:`check_training_seeds` refuses any seed at or above
@@ -195,6 +196,10 @@ def make_env_config(scenario: str = "S4", disturbance: str | None = None, *, ver
     if tier is not None:
         if version != "v1":
             raise ValueError(f"tier={tier!r} needs version='v1' (got version={version!r})")
+        own = TIERS[tier].scenario if tier in TIERS else None
+        if own is not None and scenario != own:
+            raise ValueError(f"scenario={scenario!r} is invalid on the tier AUVFollow-{tier}-v1: its plant is "
+                             f"{own!r}; for another scenario use AUVFollow-v1 (scenario=..., any link setting)")
         return make_tier_config(tier, disturbance, **overrides)
     return make_config(scenario, disturbance, version=version, **overrides)
 
