@@ -306,7 +306,7 @@ def test_tier_settings_come_from_the_published_tier_table():
 
     spec = gym.make("AUVFollow-Hard-v1").unwrapped.task_spec
     cfg = EstimatorConfig.for_spec(spec)
-    assert cfg.model == "OU"
+    assert cfg.model == "OU0"
     assert cfg.sigma_pos == pytest.approx(0.075)  # middle of fix_sigma_m in [0.05, 0.10]
     assert cfg.sigma_pos_per_m == pytest.approx(0.02)
     assert cfg.tau_u == pytest.approx(12.0) and cfg.tau_r == pytest.approx(8.0)
