@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from auv_follow_env.layout import LAYOUTS, OBS_DIM_V1, OBS_INDEX_V1, ObsField, decode
-from controllers import DOB_TIME_CONSTANT, ALL_CONTROLLERS, DisturbanceObserver, TargetEstimator, make_controller
+from controllers import ALL_CONTROLLERS, DOB_TIME_CONSTANT, DisturbanceObserver, TargetEstimator, make_controller
 from controllers.hierarchical import reference_point
 
 __all__ = ["ESTIMATOR_FIELDS", "ESTIMATOR_INDEX", "ESTIMATOR_DIM", "OBSERVATIONS", "ObservationBuilder",
@@ -56,8 +56,9 @@ ESTIMATOR_FIELDS: tuple[ObsField, ...] = (
     ObsField("est_ref_dy", "m", "estimated present reference point minus follower, body y"),
     ObsField("est_sd_pos", "m", "sqrt(P_xx + P_yy): position standard deviation of the estimate (rotation invariant)"),
     ObsField("est_sd_psi", "rad", "sqrt(P_psipsi): heading standard deviation"),
-    ObsField("est_sd_vel", "m/s", "sqrt(P_uu + P_vv): velocity standard deviation"),
-    ObsField("est_age", "s", "now minus the measurement time of the newest fix the estimator used (TargetEstimate.age)"),
+    ObsField("est_sd_vel", "m/s", "sqrt(P_uu + P_vv): target velocity standard deviation (P_uu alone for the "
+             "no-sway model OU0; CV: the inertial velocity's)"),
+    ObsField("est_age", "s", "now minus the measurement time of the newest fix the estimator used (est.age)"),
     ObsField("est_since_arrival", "s", "now minus the arrival time of the newest packet (v1 since_arrival; 0 on v0)"),
     ObsField("est_valid", "-", "1 once the estimator has a fix this episode, else 0 (then the fields above are 0)"),
     ObsField("dob_u", "N", "disturbance observer's lumped-force estimate d_hat, surge"),
@@ -89,9 +90,15 @@ def observation_dim(obs_width: int, mode: str, observation: str, include_base_ac
             + (ESTIMATOR_DIM if observation == "estimator" else 0) + 3 * int(history_len))
 
 
-def estimator_features(est: Any, d_hat: np.ndarray, since_arrival: np.ndarray, spec: Any) -> np.ndarray:
-    """The estimator block (N, 18) float64 from a ``TargetEstimate`` (with ``cov``), the force
-    estimate d_hat (N, 3) and the time since the newest packet's arrival (N,)."""
+#: estimator model -> indices of its velocity states (the state starts x, y, psi for every model)
+_VEL_STATES = {"CV": (3, 4), "CT": (3, 4), "CTA": (3, 4), "OU": (3, 4), "OU0": (3,)}
+
+
+def estimator_features(est: Any, d_hat: np.ndarray, since_arrival: np.ndarray, spec: Any,
+                       model: str = "OU0") -> np.ndarray:
+    """The estimator block (N, 18) float64 from a ``TargetEstimate`` (with ``cov``) of an
+    estimator with state model ``model``, the force estimate d_hat (N, 3) and the time since
+    the newest packet's arrival (N,)."""
     valid = np.asarray(est.valid, dtype=bool)
     n = valid.shape[0]
     out = np.zeros((n, ESTIMATOR_DIM))
@@ -110,7 +117,8 @@ def estimator_features(est: Any, d_hat: np.ndarray, since_arrival: np.ndarray, s
     if cov is not None:
         out[:, 9] = np.sqrt(np.maximum(cov[:, 0, 0] + cov[:, 1, 1], 0.0))
         out[:, 10] = np.sqrt(np.maximum(cov[:, 2, 2], 0.0))
-        out[:, 11] = np.sqrt(np.maximum(cov[:, 3, 3] + cov[:, 4, 4], 0.0))
+        vel = _VEL_STATES.get(model, (3, 4))
+        out[:, 11] = np.sqrt(np.maximum(sum(cov[:, i, i] for i in vel), 0.0))
         out[~valid, 9:12] = 0.0
     out[:, 12] = np.where(valid, est.age, 0.0)
     out[:, 13] = since_arrival
@@ -217,8 +225,9 @@ class ObservationBuilder:
             if self.include_base_action:
                 parts.append(self.base_action.astype(np.float32))
         if self.observation == "estimator":
+            estimator = self.base_estimator if self.base_estimator is not None else self.estimator
             if est is None:
-                est = self.estimator.step(obs64, start, commit=True, with_cov=True)
+                est = estimator.step(obs64, start, commit=True, with_cov=True)
             if self.base_dob is not None:
                 d_hat = self.base_dob.d_hat.copy()
             else:
@@ -227,7 +236,7 @@ class ObservationBuilder:
                 d_hat = self.dob.update(nu, np.stack([o["current_u"], o["current_v"]], axis=-1), start)
             since = obs64[:, OBS_INDEX_V1["since_arrival"]] if self.obs_width == OBS_DIM_V1 else np.zeros(n)
             self.last_estimate, self.last_d_hat = est, d_hat
-            parts.append(estimator_features(est, d_hat, since, self.spec).astype(np.float32))
+            parts.append(estimator_features(est, d_hat, since, self.spec, estimator.model).astype(np.float32))
         if self.history_len:
             parts.append(self.history(obs, start))
         return np.concatenate(parts, axis=1) if len(parts) > 1 else parts[0].copy()

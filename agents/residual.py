@@ -29,7 +29,7 @@ import numpy as np
 from gymnasium import spaces
 
 from auv_follow_env.layout import LAYOUTS, OBS_DIM, obs_slice
-from controllers import ALL_CONTROLLERS, make_controller
+from controllers import ALL_CONTROLLERS
 
 __all__ = ["ResidualWrapper", "ResidualPolicy", "DelayedTargetHistory", "residual_obs_dim", "make_residual_wrapper"]
 

@@ -1106,7 +1106,7 @@ def evaluate_agent(agent: Agent | str | Path, seeds: Any = range(1000, 1010), *,
     seed; ``own_*`` columns are NaN: an agent generates no reference of its own)."""
     from controllers.evaluation import evaluate
 
-    if not isinstance(agent, Agent):
+    if isinstance(agent, (str, Path)):
         agent = load_agent(agent)
     env_id = env_id or agent.env_id
     kw = agent.env_kwargs if env_kwargs is None else env_kwargs
