@@ -90,7 +90,7 @@ class BatchedTrainEnv:
         (this transition is the autoreset, a dummy) and, on steps where episodes ended naturally,
         ``info["episodes"]`` = (returns, lengths, episode_metrics dict) of those envs."""
         a = self.builder.act(actions)
-        raw, rew, term, trunc, info = self.venv.step(a.astype(np.float32))
+        raw, rew, term, trunc, info = self.venv.step(np.ascontiguousarray(a))
         prev_done = self._done.copy()
         pend = self._pending
         if pend.any():  # envs cut last step start their next episode now (their action was ignored)
