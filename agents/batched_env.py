@@ -94,14 +94,14 @@ class BatchedTrainEnv:
         prev_done = self._done.copy()
         pend = self._pending
         if pend.any():  # envs cut last step start their next episode now (their action was ignored)
-            raw, _ = self.venv.reset(options={"reset_mask": pend.copy()})
+            raw, rinfo = self.venv.reset(options={"reset_mask": pend.copy()})
             rew = rew.copy()
             rew[pend] = 0.0
             term = term & ~pend
             trunc = trunc & ~pend
             for key in ("true_reference", "follower_pose", "true_target"):
-                if key in info:  # the new episode's first values, like an autoreset
-                    info[key] = self.venv.unwrapped._info(None)[key] if hasattr(self.venv, "unwrapped") else info[key]
+                if key in rinfo:  # the reset's arrays hold every env's present values (the new episodes' first)
+                    info[key] = rinfo[key]
         start = prev_done
         self._len[start] = 0
         self._len[~start] += 1

@@ -249,3 +249,14 @@ def test_bppo_run_directory_load_evaluate_and_resume(tmp_path):
                  "--resume", str(run / "model.zip"), "--run-name", "b", "--no-final-eval"]) == 0
     cfg_b = yaml.safe_load((tmp_path / "b" / "config.yaml").read_text())
     assert cfg_b["result"]["start_timesteps"] == 256 and cfg_b["steps_done"] == 384
+
+
+def test_readme_documents_the_estimator_block_field_by_field():
+    import re
+    from pathlib import Path
+
+    from agents.batched_obs import ESTIMATOR_FIELDS
+
+    text = (Path(__file__).resolve().parent.parent / "agents" / "README.md").read_text()
+    rows = re.findall(r"^\| (\d+) \| `(est_\w+|dob_\w+)` \| ([^|]+) \|", text, flags=re.M)
+    assert [(int(i), n, u.strip()) for i, n, u in rows] == [(i, f.name, f.unit) for i, f in enumerate(ESTIMATOR_FIELDS)]
