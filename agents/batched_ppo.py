@@ -55,7 +55,7 @@ from agents.obs_stats import ObsStats, read_obs_stats, write_obs_stats
 __all__ = ["BatchedPPO", "BatchedAgent", "train_bppo", "load_bppo_agent", "MODEL_FORMAT", "POLICY_DEFAULTS"]
 
 MODEL_FORMAT = "auv-follow/batched-ppo/v1"
-POLICY_DEFAULTS: dict[str, Any] = {"net_arch": [128, 128], "activation": "tanh", "log_std_init": -1.0,
+POLICY_DEFAULTS: dict[str, Any] = {"net_arch": [64, 64], "activation": "tanh", "log_std_init": -1.0,
                                    "recurrent": False, "gru_size": 64, "privileged_critic": False}
 PRIV_DIM = 4
 CLIP_OBS = 10.0
@@ -325,7 +325,9 @@ def _stats(rms: _RunningMeanStd) -> ObsStats:
 
 
 def _iqm(x: np.ndarray) -> float:
-    x = np.sort(np.asarray(x, dtype=np.float64))
+    """Interquartile mean; a missing value (NaN: e.g. an episode that ended before its steady
+    state) counts as the worst (inf), so many of them make the IQM inf rather than hide."""
+    x = np.sort(np.where(np.isnan(x), np.inf, np.asarray(x, dtype=np.float64)))
     k = len(x) // 4
     return float(x[k:len(x) - k].mean()) if len(x) >= 4 else float(x.mean())
 

@@ -893,6 +893,12 @@ def _train_batched(cfg: TrainConfig, plan: _Plan, return_model: bool):
     from agents.batched_ppo import train_bppo
 
     builder = cfg.builder_kwargs()
+    n_eval = int(plan.hp.get("n_eval_seeds", 32))
+    try:
+        check_tier_training_seeds(cfg.env_id, [cfg.seed + i for i in range(plan.n_envs)]
+                                  + list(range(cfg.eval_seed, cfg.eval_seed + n_eval)))
+    except ValueError as exc:
+        raise ConfigError("eval_seed", str(exc)) from None
     try:  # a trial of the env and the observation before anything is written
         BatchedTrainEnv(cfg.env_id, 1, seed=cfg.seed, env_kwargs=cfg.env_kwargs, builder=builder).close()
     except ValueError as exc:

@@ -260,3 +260,21 @@ def test_readme_documents_the_estimator_block_field_by_field():
     text = (Path(__file__).resolve().parent.parent / "agents" / "README.md").read_text()
     rows = re.findall(r"^\| (\d+) \| `(est_\w+|dob_\w+)` \| ([^|]+) \|", text, flags=re.M)
     assert [(int(i), n, u.strip()) for i, n, u in rows] == [(i, f.name, f.unit) for i, f in enumerate(ESTIMATOR_FIELDS)]
+
+
+@pytest.mark.parametrize("pk", ["dict(recurrent=True, gru_size=8)", "dict(privileged_critic=True)"])
+def test_bppo_options_train_load_and_act(tmp_path, pk):
+    """The GRU and the asymmetric critic train on the batched path; the loaded agent acts on raw
+    observations only (the privileged critic is not needed to act) and its GRU state restarts
+    with each episode: the same seed twice gives the same episode."""
+    from agents.cli import main
+    from agents.train import evaluate_agent, load_agent
+
+    assert main(["train", "--algo", "bppo", "--env", "AUVFollow-Easy-v1", "--mode", "scratch", "--n-envs", "8",
+                 "--hp", "n_steps=8", "--hp", "batch_size=32", "--hp", f"policy_kwargs={pk}", "--timesteps", "128",
+                 "--checkpoint-freq", "0", "--eval-freq", "0", "--no-final-eval", "--no-progress", "--no-tensorboard",
+                 "--out", str(tmp_path), "--run-name", "r"]) == 0
+    agent = load_agent(tmp_path / "r")
+    assert agent.recurrent == ("recurrent" in pk)
+    df = evaluate_agent(agent, [3, 3], progress=False)
+    assert df["return"].iloc[0] == df["return"].iloc[1]
