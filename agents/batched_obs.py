@@ -71,6 +71,8 @@ ESTIMATOR_DIM = len(ESTIMATOR_FIELDS)
 #: observation kinds: the env's fields only ("raw") or with the estimator block ("estimator")
 OBSERVATIONS: tuple[str, ...] = ("raw", "estimator")
 MODES: tuple[str, ...] = ("residual", "scratch")
+#: what a residual's base disturbance observer is told (ObservationBuilder's observer_feed)
+OBSERVER_FEEDS: tuple[str, ...] = ("applied", "base")
 
 
 def default_observation(env_id: str) -> str:
@@ -143,6 +145,9 @@ class ObservationBuilder:
         include_base_action: append the base action (residual only).
         observation: ``"raw"`` or ``"estimator"`` (append :data:`ESTIMATOR_FIELDS`).
         history_len, history_stride: the finite-difference history (0: none).
+        observer_feed: what the base's disturbance observer is told: ``"applied"`` (base +
+            residual, the force commanded) or ``"base"`` (only the base's own command, as before
+            issue 22: the observer then cancels a residual; kept to evaluate agents trained so).
 
     The memory of every part (base controller, estimators, observers, history) restarts
     for the envs where ``start`` is set, and for all on the first call or a change of N.
@@ -150,11 +155,14 @@ class ObservationBuilder:
 
     def __init__(self, spec: Any, *, mode: str = "scratch", controller: str | None = None, scale: float = 0.2,
                  include_base_action: bool = True, observation: str = "raw", history_len: int = 0,
-                 history_stride: int = 10) -> None:
+                 history_stride: int = 10, observer_feed: str = "applied") -> None:
         from agents.residual import DelayedTargetHistory, _check
 
         _check_mode(mode)
         check_observation(observation)
+        if observer_feed not in OBSERVER_FEEDS:
+            raise ValueError(f"observer_feed={observer_feed!r} is unknown: valid feeds are {list(OBSERVER_FEEDS)}")
+        self.observer_feed = observer_feed
         if mode == "residual":
             _check(controller, scale, history_len, history_stride)
         else:
@@ -191,7 +199,7 @@ class ObservationBuilder:
         return {"mode": self.mode, "controller": getattr(self.base, "name", None) if self.base else None,
                 "scale": self.scale, "include_base_action": self.include_base_action,
                 "observation": self.observation, "history_len": self.history_len,
-                "history_stride": self.history_stride}
+                "history_stride": self.history_stride, "observer_feed": self.observer_feed}
 
     def reset(self) -> None:
         """Forget everything: the next :meth:`observe` starts every env afresh."""
@@ -254,7 +262,8 @@ class ObservationBuilder:
         else:
             a = res
             force = res * self.limits
-        for dob in (self.base_dob, self.dob):
-            if dob is not None:
-                dob.applied(force)
+        if self.base_dob is not None and self.observer_feed == "applied":
+            self.base_dob.applied(force)
+        if self.dob is not None:
+            self.dob.applied(force)
         return a

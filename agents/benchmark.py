@@ -401,7 +401,8 @@ def _max_distance(env_id: str) -> float:
 
 
 #: the code that decides an episode's numbers (the cache key includes its git hashes)
-_EPISODE_CODE = ("auv_follow_env", "controllers", "agents/residual.py", "agents/train.py")
+_EPISODE_CODE = ("auv_follow_env", "controllers", "agents/residual.py", "agents/train.py", "agents/batched_obs.py",
+                 "agents/batched_ppo.py")
 
 
 def _code_fingerprint() -> str | None:

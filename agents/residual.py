@@ -122,6 +122,8 @@ class ResidualWrapper(gym.Wrapper):
         history_stride: steps between lagged samples (default 10 = 0.5 s).
         observation: ``"raw"`` (default) or ``"estimator"`` (append the estimator block,
             :data:`agents.batched_obs.ESTIMATOR_FIELDS`).
+        observer_feed: ``"applied"`` (default: the base's disturbance observer is told base +
+            residual) or ``"base"`` (its own command only, as before issue 22).
 
     The base controller's disturbance observer (if any) is told the force actually commanded
     (base + residual), so it does not cancel the residual.
@@ -132,7 +134,8 @@ class ResidualWrapper(gym.Wrapper):
 
     def __init__(self, env: gym.Env, controller: str = DEFAULT_CONTROLLER, scale: float = DEFAULT_SCALE,
                  include_base_action: bool = True, history_len: int = DEFAULT_HISTORY_LEN,
-                 history_stride: int = DEFAULT_HISTORY_STRIDE, observation: str = "raw") -> None:
+                 history_stride: int = DEFAULT_HISTORY_STRIDE, observation: str = "raw",
+                 observer_feed: str = "applied") -> None:
         from agents.batched_obs import ObservationBuilder
 
         super().__init__(env)
@@ -144,7 +147,8 @@ class ResidualWrapper(gym.Wrapper):
         self.controller_name = controller
         self.builder = ObservationBuilder(spec, mode="residual", controller=controller, scale=scale,
                                           include_base_action=include_base_action, observation=observation,
-                                          history_len=history_len, history_stride=history_stride)
+                                          history_len=history_len, history_stride=history_stride,
+                                          observer_feed=observer_feed)
         self.base = self.builder.base
         self.scale = float(scale)
         self.include_base_action = bool(include_base_action)
@@ -164,6 +168,7 @@ class ResidualWrapper(gym.Wrapper):
                "history_stride": self.history_stride}
         if self.observation != "raw":
             cfg["observation"] = self.observation
+        cfg["observer_feed"] = self.builder.observer_feed
         return cfg
 
     def _augment(self, obs: np.ndarray) -> np.ndarray:
@@ -219,16 +224,18 @@ class ResidualPolicy:
     def __init__(self, agent: Any, spec: Any, residual: dict[str, Any], name: str | None = None) -> None:
         from agents.batched_obs import ObservationBuilder
 
+        # a run saved without observer_feed was trained before issue 22 (observer told the base's
+        # command only): evaluate it as it was trained
         cfg = {"controller": DEFAULT_CONTROLLER, "scale": DEFAULT_SCALE, "include_base_action": True,
                "history_len": DEFAULT_HISTORY_LEN, "history_stride": DEFAULT_HISTORY_STRIDE, "observation": "raw",
-               **residual}
+               "observer_feed": "base", **residual}
         _check(cfg["controller"], cfg["scale"], cfg["history_len"], cfg["history_stride"])
         self.agent = agent
         self.spec = spec  #: the task spec it was built for (checked by controllers.evaluation.evaluate)
         self.builder = ObservationBuilder(spec, mode="residual", controller=cfg["controller"], scale=cfg["scale"],
                                           include_base_action=cfg["include_base_action"],
                                           observation=cfg["observation"], history_len=cfg["history_len"],
-                                          history_stride=cfg["history_stride"])
+                                          history_stride=cfg["history_stride"], observer_feed=cfg["observer_feed"])
         self.base = self.builder.base
         self.scale = float(cfg["scale"])
         self.include_base_action = bool(cfg["include_base_action"])

@@ -1,5 +1,7 @@
-"""Training and evaluation of SB3 agents (PPO, SAC, TD3) on AUVFollow, from scratch or as a
-residual on top of one of the paper's controllers.
+"""Training and evaluation of SB3 agents (PPO, SAC, TD3, RecurrentPPO) on AUVFollow, from scratch
+or as a residual on top of one of the scripted controllers, and of the batched PPO ``algo="bppo"``
+(:mod:`agents.batched_ppo`: plain torch on the native vector env; same run-directory contract,
+with ``steps_done`` / ``train_seconds`` in ``config.yaml``, ``eval.csv`` and ``progress.csv``).
 
 A run writes everything into its own directory ``<out>/<algo>-<env>-<mode>-seed<k>-<timestamp>/``:
 
@@ -424,7 +426,8 @@ class TrainConfig:
 
     def residual_kwargs(self) -> dict[str, Any]:
         kw = {"controller": self.controller, "scale": self.scale, "include_base_action": self.include_base_action,
-              "history_len": self.resolved_history_len(), "history_stride": self.history_stride}
+              "history_len": self.resolved_history_len(), "history_stride": self.history_stride,
+              "observer_feed": "applied"}
         if self.resolved_observation() != "raw":
             kw["observation"] = self.resolved_observation()
         return kw
@@ -434,7 +437,7 @@ class TrainConfig:
         return {"mode": self.mode, "controller": self.controller if self.mode == "residual" else None,
                 "scale": self.scale, "include_base_action": self.include_base_action,
                 "observation": self.resolved_observation(), "history_len": self.resolved_history_len(),
-                "history_stride": self.history_stride}
+                "history_stride": self.history_stride, "observer_feed": "applied"}
 
 
 def _wrapper(mode: str, residual: dict[str, Any] | None):

@@ -63,11 +63,12 @@ def _v0_obs(p, psi, nu, target, p_d):
     return o
 
 
-def _steady_offset(residual: float, tell_observer: bool) -> float:
+def _steady_offset(residual: float, feed: str) -> float:
     """Surge position of a nominal-model follower (m u' = F_u - X_u u) minus the reference's,
     after 60 s behind a stationary target, with PROPOSED_KF_DOB plus a constant surge residual."""
     spec = gym.make("AUVFollow-S1-v0").unwrapped.task_spec
-    b = ObservationBuilder(spec, mode="residual", controller="PROPOSED_KF_DOB", scale=0.2, history_len=0)
+    b = ObservationBuilder(spec, mode="residual", controller="PROPOSED_KF_DOB", scale=0.2, history_len=0,
+                           observer_feed=feed)
     m, X_u = spec.nominal.m, spec.nominal.X_u
     target = np.array([5.0, 2.0, 0.0])
     p, psi, u = np.array([5.0 + spec.p_d[0] - 0.3, 2.0 + spec.p_d[1]]), 0.0, 0.0
@@ -76,11 +77,7 @@ def _steady_offset(residual: float, tell_observer: bool) -> float:
         o = _v0_obs(p, psi, (u, 0.0, 0.0), target, spec.p_d)
         b.observe(o[None], start)
         start = np.array([False])
-        res = np.array([[residual, 0.0, 0.0]])
-        if tell_observer:
-            a = b.act(res)
-        else:  # the old wrapper: the observer only knows the base's own command
-            a = np.clip(b.base_action.astype(np.float64) + 0.2 * res, -1, 1)
+        a = b.act(np.array([[residual, 0.0, 0.0]]))
         F = a[0, 0] * spec.force_limits[0]
         for _ in range(50):  # the nominal surge dynamics, 50 Euler substeps per control step
             u += spec.dt / 50 * (F - X_u * u) / m
@@ -96,10 +93,22 @@ def test_constant_residual_moves_the_follower_by_the_offset_the_nominal_model_pr
     K_u + rho / phi = 50 + 4 / 0.04 = 150 N s/m, K_p = 1 / s: e_x = 0.01 m."""
     g = make_controller("PROPOSED_KF_DOB", gym.make("AUVFollow-S1-v0").unwrapped.task_spec).gains
     assert (g.K_p, g.K_u, g.rho[0], g.phi[0]) == (1.0, 50.0, 4.0, 0.04)  # the values the 0.01 m is worked out with
-    offset = _steady_offset(0.05, tell_observer=True)
+    offset = _steady_offset(0.05, "applied")
     assert offset == pytest.approx(0.01, rel=0.02)
     # the old feed (observer told only the base's command) cancels it: the offset is below 1 % of that
-    assert abs(_steady_offset(0.05, tell_observer=False)) < 1e-4
+    assert abs(_steady_offset(0.05, "base")) < 1e-4
+
+
+def test_a_run_saved_before_issue_22_is_evaluated_with_the_feed_it_was_trained_with():
+    from agents.residual import ResidualPolicy
+
+    spec = gym.make(HARD).unwrapped.task_spec
+    old = ResidualPolicy(None, spec, {"controller": "PROPOSED_KF_DOB", "scale": 0.2, "history_len": 4})
+    new = ResidualPolicy(None, spec, {"controller": "PROPOSED_KF_DOB", "scale": 0.2, "history_len": 0,
+                                      "observer_feed": "applied"})
+    assert old.builder.observer_feed == "base" and new.builder.observer_feed == "applied"
+    wrapper = ResidualWrapper(gym.make(HARD), controller="PROPOSED_KF_DOB")
+    assert wrapper.config["observer_feed"] == "applied"
 
 
 # --- 2. the estimator observation -----------------------------------------------------------
