@@ -149,7 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="residual authority as a fraction of the force limits")
     t.add_argument("--history-len", type=_nonneg_int, default=None,
                    help=f"lagged delayed-target velocity differences in a residual agent's observation "
-                        f"(None: {DEFAULT_HISTORY_LEN} on v0 ids, 0 on v1)")
+                        f"(None: {DEFAULT_HISTORY_LEN} for residual agents on v0 ids, else 0)")
     t.add_argument("--obs", dest="observation", choices=("raw", "estimator"), default=None,
                    help="agent observation: the env's fields, or with the estimator block (agents/README.md; "
                         "None: estimator for --algo bppo on v1 ids, else raw)")

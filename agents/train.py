@@ -316,7 +316,8 @@ class TrainConfig:
     scale: float = DEFAULT_SCALE  #: residual authority (fraction of the force limits)
     include_base_action: bool = True  #: append the base action to the agent's observation
     history_len: int | None = None
-    """Lagged delayed-target velocity differences (None: 4 on v0 ids, 0 on v1: off on the acoustic link)."""
+    """Lagged delayed-target velocity differences (None: 4 for residual agents on v0 ids; 0 on v1 ids,
+    off on the acoustic link, and from scratch)."""
     history_stride: int = DEFAULT_HISTORY_STRIDE  #: steps between lagged samples
     total_timesteps: int | None = None  #: env steps (None: the YAML's n_timesteps)
     max_minutes: float | None = None  #: wall-clock budget; training stops when it runs out
@@ -411,7 +412,7 @@ class TrainConfig:
     def resolved_history_len(self) -> int:
         if self.history_len is not None:
             return self.history_len
-        return 0 if str(self.env_id).endswith("-v1") else DEFAULT_HISTORY_LEN
+        return 0 if str(self.env_id).endswith("-v1") or self.mode == "scratch" else DEFAULT_HISTORY_LEN
 
     def resolved_observation(self) -> str:
         if self.observation is not None:
