@@ -487,7 +487,7 @@ def _max_distance(env_id: str) -> float:
 
 #: the code that decides an episode's numbers (the cache key includes its git hashes)
 _EPISODE_CODE = ("auv_follow_env", "controllers", "agents/residual.py", "agents/train.py", "agents/benchmark.py",
-                 "agents/obs_stats.py")
+                 "agents/obs_stats.py", "agents/batched_obs.py", "agents/batched_ppo.py")
 #: packages whose version can change an episode's numbers (part of the cache key)
 _EPISODE_PACKAGES = ("numpy", "numba", "gymnasium", "torch", "stable_baselines3", "sb3_contrib", "casadi", "scipy")
 

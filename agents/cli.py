@@ -46,7 +46,7 @@ FLAGS: dict[str, str] = {
     "seed": "--seed", "n_envs": "--n-envs", "vec": "--vec", "out_dir": "--out", "run_name": "--run-name",
     "checkpoint_freq": "--checkpoint-freq", "eval_freq": "--eval-freq", "eval_episodes": "--eval-episodes",
     "eval_seed": "--eval-seed", "resume_from": "--resume", "hyperparams_file": "--hyperparams",
-    "hyperparams": "--hp", "verbose": "--verbose"}
+    "hyperparams": "--hp", "verbose": "--verbose", "observation": "--obs"}
 
 #: where ``auv-follow benchmark`` writes without --out (ignored by git, like experiments/outputs.py's scratch)
 SCRATCH_BENCH = "results/tmp/benchmark"
@@ -146,7 +146,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Train a PPO/SAC/TD3 agent on AUVFollow, from scratch or as a residual on a "
                                    "controller; everything is checked before the run directory is created.",
                        epilog=_TRUST)
-    t.add_argument("--algo", choices=ALGOS, default="ppo", help="algorithm")
+    t.add_argument("--algo", choices=ALGOS, default="ppo",
+                   help="algorithm (bppo: the batched PPO of agents/batched_ppo.py on the native vector env)")
     t.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default="AUVFollow-S4-v0", help="env id")
     t.add_argument("--env-kwarg", dest="env_kwargs", type=_key_value, action="append", default=[],
                    metavar="KEY=VALUE", help="scenario override for gym.make (repeatable), e.g. disturbance=L1")
@@ -156,8 +157,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "PROPOSED_KF_DOB, MPC)")
     t.add_argument("--scale", type=_positive_float, default=DEFAULT_SCALE,
                    help="residual authority as a fraction of the force limits")
-    t.add_argument("--history-len", type=_nonneg_int, default=DEFAULT_HISTORY_LEN,
-                   help="lagged delayed-target velocity differences in a residual agent's observation")
+    t.add_argument("--history-len", type=_nonneg_int, default=None,
+                   help=f"lagged delayed-target velocity differences in a residual agent's observation "
+                        f"(None: {DEFAULT_HISTORY_LEN} for residual agents on v0 ids, else 0)")
+    t.add_argument("--obs", dest="observation", choices=("raw", "estimator"), default=None,
+                   help="agent observation: the env's fields, or with the estimator block (agents/README.md; "
+                        "None: estimator for --algo bppo on v1 ids, else raw)")
     t.add_argument("--history-stride", type=_positive_int, default=DEFAULT_HISTORY_STRIDE,
                    help="steps between the lagged samples")
     t.add_argument("--no-base-action", dest="include_base_action", action="store_false",
@@ -173,9 +178,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--out", dest="out_dir", default="runs", help="parent directory of the run directory")
     t.add_argument("--run-name", default=None,
                    help="run directory name, one path component (None: <algo>-<env>-<mode>-seed<k>-<timestamp>)")
-    t.add_argument("--checkpoint-freq", type=_nonneg_int, default=100_000,
-                   help="env steps between checkpoints (0: none)")
-    t.add_argument("--eval-freq", type=_nonneg_int, default=50_000, help="env steps between evaluations (0: none)")
+    t.add_argument("--checkpoint-freq", type=_nonneg_int, default=None,
+                   help="env steps between checkpoints (0: none; None: 100000, bppo 5000000)")
+    t.add_argument("--eval-freq", type=_nonneg_int, default=None,
+                   help="env steps between evaluations (0: none; None: 50000, bppo 1000000)")
     t.add_argument("--eval-episodes", type=_positive_int, default=3,
                    help="episodes per evaluation and of the final score")
     t.add_argument("--eval-seed", type=_nonneg_int, default=500, help="seed of the evaluation env")

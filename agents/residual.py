@@ -29,7 +29,7 @@ import numpy as np
 from gymnasium import spaces
 
 from auv_follow_env.layout import LAYOUTS, OBS_DIM, obs_slice
-from controllers import ALL_CONTROLLERS, make_controller
+from controllers import ALL_CONTROLLERS
 
 __all__ = ["ResidualWrapper", "ResidualPolicy", "DelayedTargetHistory", "residual_obs_dim", "make_residual_wrapper"]
 
@@ -108,6 +108,9 @@ class DelayedTargetHistory:
 class ResidualWrapper(gym.Wrapper):
     """Residual action on top of a scripted controller, with an augmented observation.
 
+    A single-env view of :class:`agents.batched_obs.ObservationBuilder` (the same code as the
+    batched training env, with N = 1).
+
     Args:
         env: an AUVFollow env (``gym.make("AUVFollow-S4-v0")``, possibly wrapped by Monitor
             or TimeLimit); its ``unwrapped.task_spec`` configures the base controller.
@@ -117,14 +120,24 @@ class ResidualWrapper(gym.Wrapper):
         history_len: number K of lagged delayed-target velocity differences (default 4;
             0 disables the history).
         history_stride: steps between lagged samples (default 10 = 0.5 s).
+        observation: ``"raw"`` (default) or ``"estimator"`` (append the estimator block,
+            :data:`agents.batched_obs.ESTIMATOR_FIELDS`).
+        observer_feed: ``"applied"`` (default: the base's disturbance observer is told base +
+            residual) or ``"base"`` (its own command only, as before issue 22).
+
+    The base controller's disturbance observer (if any) is told the force actually commanded
+    (base + residual), so it does not cancel the residual.
 
     Raises:
-        ValueError: unknown controller or invalid scale / history settings.
+        ValueError: unknown controller or invalid scale / history / observation settings.
     """
 
     def __init__(self, env: gym.Env, controller: str = DEFAULT_CONTROLLER, scale: float = DEFAULT_SCALE,
                  include_base_action: bool = True, history_len: int = DEFAULT_HISTORY_LEN,
-                 history_stride: int = DEFAULT_HISTORY_STRIDE) -> None:
+                 history_stride: int = DEFAULT_HISTORY_STRIDE, observation: str = "raw",
+                 observer_feed: str = "applied") -> None:
+        from agents.batched_obs import ObservationBuilder
+
         super().__init__(env)
         _check(controller, scale, history_len, history_stride)
         if len(env.observation_space.shape) != 1 or env.observation_space.shape[0] not in LAYOUTS:
@@ -132,33 +145,36 @@ class ResidualWrapper(gym.Wrapper):
                              f"layout (width {sorted(LAYOUTS)}): apply ResidualWrapper to an AUVFollow env")
         spec = env.unwrapped.task_spec
         self.controller_name = controller
-        self.base = make_controller(controller, spec)
+        self.builder = ObservationBuilder(spec, mode="residual", controller=controller, scale=scale,
+                                          include_base_action=include_base_action, observation=observation,
+                                          history_len=history_len, history_stride=history_stride,
+                                          observer_feed=observer_feed)
+        self.base = self.builder.base
         self.scale = float(scale)
         self.include_base_action = bool(include_base_action)
         self.history_len = int(history_len)
         self.history_stride = int(history_stride)
-        self._history = DelayedTargetHistory(self.history_len, self.history_stride, spec.dt)
+        self.observation = observation
         self._k = 0
         self._base_action = np.zeros(3, dtype=np.float32)
-        dim = residual_obs_dim(self.include_base_action, self.history_len, env.observation_space.shape[0])
-        self.observation_space = spaces.Box(-np.inf, np.inf, (dim,), np.float32)
+        self.observation_space = spaces.Box(-np.inf, np.inf, (self.builder.dim,), np.float32)
         self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
 
     @property
     def config(self) -> dict[str, Any]:
         """The wrapper's keyword arguments (to save with a model)."""
-        return {"controller": self.controller_name, "scale": self.scale,
-                "include_base_action": self.include_base_action, "history_len": self.history_len,
-                "history_stride": self.history_stride}
+        cfg = {"controller": self.controller_name, "scale": self.scale,
+               "include_base_action": self.include_base_action, "history_len": self.history_len,
+               "history_stride": self.history_stride}
+        if self.observation != "raw":
+            cfg["observation"] = self.observation
+        cfg["observer_feed"] = self.builder.observer_feed
+        return cfg
 
     def _augment(self, obs: np.ndarray) -> np.ndarray:
-        self._base_action, _ = self.base.predict(obs, episode_start=np.array([self._k == 0]))
-        parts = [np.asarray(obs, dtype=np.float32)]
-        if self.include_base_action:
-            parts.append(self._base_action.astype(np.float32))
-        if self.history_len:
-            parts.append(self._history(np.asarray(obs)[None, :], np.array([self._k == 0]))[0])
-        return np.concatenate(parts)
+        out = self.builder.observe(np.asarray(obs)[None, :], np.array([self._k == 0]))[0]
+        self._base_action = self.builder.base_action[0]
+        return out
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         obs, info = self.env.reset(seed=seed, options=options)
@@ -168,8 +184,7 @@ class ResidualWrapper(gym.Wrapper):
         return out, info
 
     def step(self, action: Any):
-        res = np.asarray(action, dtype=np.float64).reshape(3)
-        applied = np.clip(self._base_action.astype(np.float64) + self.scale * np.clip(res, -1.0, 1.0), -1.0, 1.0)
+        applied = self.builder.act(np.asarray(action, dtype=np.float64).reshape(1, 3))[0]
         obs, reward, terminated, truncated, info = self.env.step(applied)
         info["applied_action"] = applied
         self._k += 1
@@ -192,10 +207,11 @@ def make_residual_wrapper(**kwargs: Any) -> Callable[[gym.Env], gym.Env]:
 
 class ResidualPolicy:
     """A residual agent as one policy over *raw* AUVFollow observations (SB3 ``predict``
-    protocol, single (16,) or batched (N, 16)): it runs the base controller and the history
-    itself, so it needs no wrapper (e.g. for ``controllers.evaluation.evaluate`` or
-    ``evaluate_batched``). Per-env memory restarts where ``episode_start`` is True (and on
-    the first call / a change of batch size).
+    protocol, single (W,) or batched (N, W)): it runs the base controller, the history and
+    (if trained with it) the estimator block itself through
+    :class:`agents.batched_obs.ObservationBuilder`, so it needs no wrapper (e.g. for
+    ``controllers.evaluation.evaluate`` or ``evaluate_batched``). Per-env memory restarts where
+    ``episode_start`` is True (and on the first call / a change of batch size).
 
     Args:
         agent: the residual agent's policy over the wrapped observation (anything with
@@ -206,21 +222,29 @@ class ResidualPolicy:
     """
 
     def __init__(self, agent: Any, spec: Any, residual: dict[str, Any], name: str | None = None) -> None:
+        from agents.batched_obs import ObservationBuilder
+
+        # a run saved without observer_feed was trained before issue 22 (observer told the base's
+        # command only): evaluate it as it was trained
         cfg = {"controller": DEFAULT_CONTROLLER, "scale": DEFAULT_SCALE, "include_base_action": True,
-               "history_len": DEFAULT_HISTORY_LEN, "history_stride": DEFAULT_HISTORY_STRIDE, **residual}
+               "history_len": DEFAULT_HISTORY_LEN, "history_stride": DEFAULT_HISTORY_STRIDE, "observation": "raw",
+               "observer_feed": "base", **residual}
         _check(cfg["controller"], cfg["scale"], cfg["history_len"], cfg["history_stride"])
         self.agent = agent
         self.spec = spec  #: the task spec it was built for (checked by controllers.evaluation.evaluate)
-        self.base = make_controller(cfg["controller"], spec)
+        self.builder = ObservationBuilder(spec, mode="residual", controller=cfg["controller"], scale=cfg["scale"],
+                                          include_base_action=cfg["include_base_action"],
+                                          observation=cfg["observation"], history_len=cfg["history_len"],
+                                          history_stride=cfg["history_stride"], observer_feed=cfg["observer_feed"])
+        self.base = self.builder.base
         self.scale = float(cfg["scale"])
         self.include_base_action = bool(cfg["include_base_action"])
-        self.history = DelayedTargetHistory(cfg["history_len"], cfg["history_stride"], spec.dt)
+        self.history = self.builder.history
         self.name = name or getattr(agent, "name", "residual")
-        self._n: int | None = None
 
     def reset(self) -> None:
         """Forget all memory: the next call starts fresh for every env."""
-        self._n = None
+        self.builder.reset()
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool = True) -> tuple[np.ndarray, Any]:
@@ -231,19 +255,11 @@ class ResidualPolicy:
         if obs.ndim != 2 or obs.shape[1] not in LAYOUTS:
             raise ValueError(f"observation has shape {np.shape(observation)}: expected (W,) or (N, W) with an "
                              f"AUVFollow layout width W in {sorted(LAYOUTS)}")
+        if obs.shape[1] != self.builder.obs_width:
+            raise ValueError(f"observation has shape {np.shape(observation)}: this policy was built for "
+                             f"{self.builder.obs_width}-wide observations")
         n = obs.shape[0]
-        if self._n != n or episode_start is None:
-            start = np.full(n, self._n != n)
-        else:
-            start = np.asarray(episode_start, dtype=bool).reshape(n)
-        self._n = n
-        base, _ = self.base.predict(obs, episode_start=start)
-        parts = [obs.astype(np.float32)]
-        if self.include_base_action:
-            parts.append(base.astype(np.float32))
-        if self.history.history_len:
-            parts.append(self.history(obs, start))
-        res, _ = self.agent.predict(np.concatenate(parts, axis=1), deterministic=deterministic)
-        res = np.clip(np.asarray(res, dtype=np.float64).reshape(n, 3), -1.0, 1.0)
-        action = np.clip(base.astype(np.float64) + self.scale * res, -1.0, 1.0)
+        feats = self.builder.observe(obs, episode_start)
+        res, _ = self.agent.predict(feats, deterministic=deterministic)
+        action = self.builder.act(np.asarray(res, dtype=np.float64).reshape(n, 3))
         return (action[0] if single else action), state

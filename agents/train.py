@@ -1,5 +1,7 @@
-"""Training and evaluation of SB3 agents (PPO, SAC, TD3) on AUVFollow, from scratch or as a
-residual on top of one of the paper's controllers.
+"""Training and evaluation of SB3 agents (PPO, SAC, TD3, RecurrentPPO) on AUVFollow, from scratch
+or as a residual on top of one of the scripted controllers, and of the batched PPO ``algo="bppo"``
+(:mod:`agents.batched_ppo`: plain torch on the native vector env; same run-directory contract,
+with ``steps_done`` / ``train_seconds`` in ``config.yaml``, ``eval.csv`` and ``progress.csv``).
 
 A run writes everything into its own directory ``<out>/<algo>-<env>-<mode>-seed<k>-<timestamp>/``:
 
@@ -59,7 +61,12 @@ __all__ = ["ALGOS", "MODES", "TrainConfig", "train", "load_hyperparams", "check_
            "Agent", "versions", "evaluate_agent", "HYPERPARAMS_DIR", "ConfigError", "TrainingInterrupted",
            "MAX_N_ENVS"]
 
-ALGOS: tuple[str, ...] = ("ppo", "sac", "td3", "recurrentppo")
+ALGOS: tuple[str, ...] = ("ppo", "sac", "td3", "recurrentppo", "bppo")
+#: algorithms trained by our own batched loop (agents.batched_ppo) rather than SB3
+BATCHED_ALGOS: tuple[str, ...] = ("bppo",)
+#: checkpoint / evaluation intervals [env steps] when not given: (SB3 algorithms, batched algorithms)
+DEFAULT_CHECKPOINT_FREQ = (100_000, 5_000_000)
+DEFAULT_EVAL_FREQ = (50_000, 1_000_000)
 #: algorithms whose policy carries a recurrent state (sb3-contrib's RecurrentPPO, an LSTM policy)
 RECURRENT_ALGOS: tuple[str, ...] = ("recurrentppo",)
 MODES: tuple[str, ...] = ("residual", "scratch")
@@ -96,6 +103,10 @@ def _algo_class(algo: str):
     from stable_baselines3 import PPO, SAC, TD3
 
     classes = {"ppo": PPO, "sac": SAC, "td3": TD3}
+    if algo in BATCHED_ALGOS:
+        from agents.batched_ppo import BatchedPPO
+
+        return BatchedPPO
     if algo in RECURRENT_ALGOS:
         from sb3_contrib import RecurrentPPO
 
@@ -305,7 +316,9 @@ class TrainConfig:
     controller: str = DEFAULT_CONTROLLER  #: base controller of a residual agent
     scale: float = DEFAULT_SCALE  #: residual authority (fraction of the force limits)
     include_base_action: bool = True  #: append the base action to the agent's observation
-    history_len: int = DEFAULT_HISTORY_LEN  #: lagged delayed-target velocity differences
+    history_len: int | None = None
+    """Lagged delayed-target velocity differences (None: 4 for residual agents on v0 ids; 0 on v1 ids,
+    off on the acoustic link, and from scratch)."""
     history_stride: int = DEFAULT_HISTORY_STRIDE  #: steps between lagged samples
     total_timesteps: int | None = None  #: env steps (None: the YAML's n_timesteps)
     max_minutes: float | None = None  #: wall-clock budget; training stops when it runs out
@@ -315,8 +328,13 @@ class TrainConfig:
     out_dir: str = "runs"  #: parent of the run directory
     run_name: str | None = None
     """Run directory name, one path component (None: ``<algo>-<env>-<mode>-seed<k>-<timestamp>``)."""
-    checkpoint_freq: int = 100_000  #: env steps between checkpoints (0: none)
-    eval_freq: int = 50_000  #: env steps between evaluations (0: none)
+    checkpoint_freq: int | None = None
+    """Env steps between checkpoints (0: none; None: 100,000, or 5,000,000 for bppo)."""
+    eval_freq: int | None = None
+    """Env steps between evaluations (0: none; None: 50,000, or 1,000,000 for bppo)."""
+    observation: str | None = None
+    """The agent's observation: "raw" or "estimator" (the estimator block, agents.batched_obs);
+    None: "estimator" for bppo on v1 ids, else "raw". SB3 algorithms take "estimator" in residual mode only."""
     eval_episodes: int = 3  #: episodes per evaluation (and of the final score)
     eval_seed: int = 500  #: seed of the EvalCallback env (distinct from training and test seeds)
     resume_from: str | None = None  #: checkpoint/model .zip to continue (keeps num_timesteps)
@@ -338,7 +356,14 @@ class TrainConfig:
             raise ConfigError("mode", f"mode={self.mode!r} is unknown: valid modes are {list(MODES)}")
         if self.vec not in VEC_KINDS:
             raise ConfigError("vec", f"vec={self.vec!r} is unknown: valid kinds are {list(VEC_KINDS)}")
-        if self.vec == "native" and self.mode != "scratch":
+        if self.observation is not None and self.observation not in ("raw", "estimator"):
+            raise ConfigError("observation", f"observation={self.observation!r} is unknown: valid kinds are "
+                                             "['raw', 'estimator']")
+        if (self.algo not in BATCHED_ALGOS and self.mode == "scratch"
+                and self.resolved_observation() == "estimator"):
+            raise ConfigError("observation", f"observation='estimator' with algo={self.algo!r} needs "
+                                             "mode='residual' (or algo='bppo', which takes it in both modes)")
+        if self.vec == "native" and self.mode != "scratch" and self.algo not in BATCHED_ALGOS:
             raise ConfigError("vec", "vec='native' trains from scratch only (mode='scratch'): the residual wrapper "
                                      "is a per-env gymnasium wrapper; use vec='dummy' for residual agents")
         if self.mode == "residual":
@@ -353,10 +378,11 @@ class TrainConfig:
             raise ConfigError("hyperparams", f"hyperparams={self.hyperparams!r} is invalid: must be a dict")
         for name, lo, hi in (("total_timesteps", 1, math.inf), ("n_envs", 1, MAX_N_ENVS),
                              ("checkpoint_freq", 0, math.inf), ("eval_freq", 0, math.inf),
+                             ("history_len", 0, math.inf),
                              ("eval_episodes", 1, 10_000), ("seed", 0, 2**32 - 1),
                              ("eval_seed", 0, 2**32 - 1), ("verbose", 0, 2)):
             v = getattr(self, name)
-            if v is None and name in ("total_timesteps", "n_envs"):
+            if v is None and name in ("total_timesteps", "n_envs", "checkpoint_freq", "eval_freq", "history_len"):
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 allowed = f"an integer >= {lo}" if hi == math.inf else f"an integer in [{lo}, {hi}]"
@@ -384,9 +410,36 @@ class TrainConfig:
         if self.hyperparams_file is not None and not Path(self.hyperparams_file).is_file():
             raise ConfigError("hyperparams_file", f"hyperparams_file={self.hyperparams_file!r}: no such file")
 
+    def resolved_history_len(self) -> int:
+        if self.history_len is not None:
+            return self.history_len
+        return 0 if str(self.env_id).endswith("-v1") or self.mode == "scratch" else DEFAULT_HISTORY_LEN
+
+    def resolved_observation(self) -> str:
+        if self.observation is not None:
+            return self.observation
+        return "estimator" if self.algo in BATCHED_ALGOS and str(self.env_id).endswith("-v1") else "raw"
+
+    def resolved_freqs(self) -> tuple[int, int]:
+        """(checkpoint_freq, eval_freq) with None replaced by the algorithm's default."""
+        b = int(self.algo in BATCHED_ALGOS)
+        return (DEFAULT_CHECKPOINT_FREQ[b] if self.checkpoint_freq is None else int(self.checkpoint_freq),
+                DEFAULT_EVAL_FREQ[b] if self.eval_freq is None else int(self.eval_freq))
+
     def residual_kwargs(self) -> dict[str, Any]:
-        return {"controller": self.controller, "scale": self.scale, "include_base_action": self.include_base_action,
-                "history_len": self.history_len, "history_stride": self.history_stride}
+        kw = {"controller": self.controller, "scale": self.scale, "include_base_action": self.include_base_action,
+              "history_len": self.resolved_history_len(), "history_stride": self.history_stride,
+              "observer_feed": "applied"}
+        if self.resolved_observation() != "raw":
+            kw["observation"] = self.resolved_observation()
+        return kw
+
+    def builder_kwargs(self) -> dict[str, Any]:
+        """The :class:`agents.batched_obs.ObservationBuilder` settings of this run."""
+        return {"mode": self.mode, "controller": self.controller if self.mode == "residual" else None,
+                "scale": self.scale, "include_base_action": self.include_base_action,
+                "observation": self.resolved_observation(), "history_len": self.resolved_history_len(),
+                "history_stride": self.history_stride, "observer_feed": "applied"}
 
 
 def _wrapper(mode: str, residual: dict[str, Any] | None):
@@ -654,6 +707,13 @@ def _plan(cfg: TrainConfig) -> _Plan:
         where = "hyperparams" if cfg.hyperparams else "hyperparams_file"
         raise ConfigError(where, f"hyperparameters could not be read: {_one_line(exc)}") from None
     hp = check_hyperparams(cfg.algo, hp)
+    if cfg.algo in BATCHED_ALGOS:
+        from agents.batched_ppo import check_bppo_hyperparams
+
+        try:
+            check_bppo_hyperparams(hp)
+        except ValueError as exc:
+            raise ConfigError("hyperparams", str(exc)) from None
     if cfg.total_timesteps is None and hp["n_timesteps"] is None:
         raise ConfigError("total_timesteps", "total_timesteps is not given and the hyperparameters have no "
                                              "n_timesteps")
@@ -671,7 +731,7 @@ def _plan(cfg: TrainConfig) -> _Plan:
     vecnorm_pickle = None
     if cfg.resume_from is not None:
         _check_resume(cfg, residual)
-        if norm_kw is not None:
+        if norm_kw is not None and cfg.algo not in BATCHED_ALGOS:
             vecnorm_pickle = _stats_path(Path(cfg.resume_from), ".pkl")
             if not vecnorm_pickle.is_file():
                 raise ConfigError("resume_from", f"{vecnorm_pickle} is missing: resuming an agent trained with "
@@ -752,6 +812,8 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
 
     torch.set_num_threads(1)
     plan = _plan(cfg)
+    if cfg.algo in BATCHED_ALGOS:
+        return _train_batched(cfg, plan, return_model)
     trial_venv, _ = _build(cfg, plan, None, None)  # raises ConfigError before anything is written
     trial_venv.close()
 
@@ -766,15 +828,16 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
         remaining = plan.total - start_steps if cfg.resume_from is not None else plan.total
         n_envs = plan.n_envs
         callbacks = []
-        if cfg.checkpoint_freq:
-            callbacks.append(_checkpoint_callback(max(cfg.checkpoint_freq // n_envs, 1), str(run / "checkpoints")))
-        if cfg.eval_freq:
+        checkpoint_freq, eval_freq = cfg.resolved_freqs()
+        if checkpoint_freq:
+            callbacks.append(_checkpoint_callback(max(checkpoint_freq // n_envs, 1), str(run / "checkpoints")))
+        if eval_freq:
             eval_env = _make_venv(cfg.env_id, cfg.env_kwargs, 1, cfg.eval_seed, cfg.mode, plan.residual, None)
             if plan.norm_kw is not None:
                 eval_env = VecNormalize(eval_env, training=False, norm_obs=plan.norm_kw.get("norm_obs", True),
                                         norm_reward=False, gamma=plan.gamma)
             callbacks.append(EvalCallback(eval_env, n_eval_episodes=cfg.eval_episodes,
-                                          eval_freq=max(cfg.eval_freq // n_envs, 1), log_path=str(run / "eval"),
+                                          eval_freq=max(eval_freq // n_envs, 1), log_path=str(run / "eval"),
                                           best_model_save_path=None, deterministic=True, verbose=0))
         if cfg.max_minutes is not None:
             callbacks.append(_wall_clock_callback(60.0 * cfg.max_minutes))
@@ -827,6 +890,70 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
             _write_yaml(run / "config.yaml", resolved)
     venv.close()
     return (run, model) if return_model else run
+
+
+def _train_batched(cfg: TrainConfig, plan: _Plan, return_model: bool):
+    """:func:`train` for ``algo="bppo"`` (:mod:`agents.batched_ppo`), same run-directory contract."""
+    from agents.batched_env import BatchedTrainEnv
+    from agents.batched_ppo import train_bppo
+
+    builder = cfg.builder_kwargs()
+    n_eval = int(plan.hp.get("n_eval_seeds", 32))
+    try:
+        check_tier_training_seeds(cfg.env_id, [cfg.seed + i for i in range(plan.n_envs)]
+                                  + list(range(cfg.eval_seed, cfg.eval_seed + n_eval)))
+    except ValueError as exc:
+        raise ConfigError("eval_seed", str(exc)) from None
+    try:  # a trial of the env and the observation before anything is written
+        BatchedTrainEnv(cfg.env_id, 1, seed=cfg.seed, env_kwargs=cfg.env_kwargs, builder=builder).close()
+    except ValueError as exc:
+        raise ConfigError("observation", f"the observation settings are refused: {_one_line(exc)}") from None
+    if cfg.resume_from is not None:
+        from agents.batched_ppo import _load_model_file
+
+        try:
+            _load_model_file(Path(cfg.resume_from))
+        except ValueError as exc:
+            raise ConfigError("resume_from", str(exc)) from None
+    run = plan.run
+    created = not run.exists()
+    run.mkdir(parents=True, exist_ok=True)
+    checkpoint_freq, eval_freq = cfg.resolved_freqs()
+    resolved = {"run": {**asdict(cfg), "total_timesteps": plan.total, "n_envs": plan.n_envs, "run_dir": str(run),
+                        "checkpoint_freq": checkpoint_freq, "eval_freq": eval_freq,
+                        "history_len": cfg.resolved_history_len(), "observation": cfg.resolved_observation()},
+                "hyperparams": {k: (v if isinstance(v, (int, float, str, bool, list, dict, type(None))) else repr(v))
+                                for k, v in plan.hp.items()},
+                "normalize": plan.norm_kw, "residual": plan.residual, "observation": builder,
+                "threads": {"env_kernel": "numba serial (parallel=False)",
+                            "torch": int(plan.hp.get("torch_threads", 1))},
+                "versions": versions(), "steps_done": 0, "train_seconds": 0.0}
+    try:
+        _write_yaml(run / "config.yaml", resolved)
+    except BaseException:
+        if created:
+            shutil.rmtree(run, ignore_errors=True)
+        raise
+    start = 0
+    if cfg.resume_from is not None:
+        from agents.batched_ppo import _load_model_file
+
+        start = int(_load_model_file(Path(cfg.resume_from))["steps_done"])
+        if plan.total <= start:
+            shutil.rmtree(run, ignore_errors=True)
+            raise ConfigError("total_timesteps", f"total_timesteps={plan.total} is not beyond the checkpoint's "
+                                                 f"{start} steps: give a larger total_timesteps to resume")
+    cfg_run = TrainConfig(**{**asdict(cfg), "checkpoint_freq": checkpoint_freq, "eval_freq": eval_freq})
+    progress = _Progress(plan.total - start, start, cfg.progress_bar)
+    with _StopOnSigint() as sigint:
+        result, interrupted = train_bppo(cfg_run, plan, resolved, run, progress, sigint, _write_yaml)
+    resolved["result"] = result
+    _write_yaml(run / "config.yaml", resolved)
+    if interrupted:
+        print(f"training interrupted at {result['num_timesteps']:,} steps: model.zip, normalisation statistics and "
+              f"config.yaml (interrupted: true) saved in {run}", file=sys.stderr)
+        raise TrainingInterrupted(run, result["num_timesteps"])
+    return (run, load_agent(run)) if return_model else run
 
 
 def _final_score(cfg: TrainConfig, model: Any, venv: Any, resolved: dict) -> dict | None:
@@ -970,6 +1097,10 @@ def load_agent(path: str | Path, name: str | None = None) -> Agent:
                                     f"them{convert}")
         stats = read_obs_stats(json_path)
         check_against_config(stats, norm, json_path, cfg_path)
+    if config["run"]["algo"] in BATCHED_ALGOS:
+        from agents.batched_ppo import load_bppo_agent
+
+        return load_bppo_agent(model_path, config, stats, name=name)
     try:
         model = _algo_class(config["run"]["algo"]).load(str(model_path), device="cpu")
     except Exception as exc:  # noqa: BLE001 (zipfile, pickle, torch and SB3 errors alike)
@@ -987,7 +1118,7 @@ def evaluate_agent(agent: Agent | str | Path, seeds: Any = range(1000, 1010), *,
     seed; ``own_*`` columns are NaN: an agent generates no reference of its own)."""
     from controllers.evaluation import evaluate
 
-    if not isinstance(agent, Agent):
+    if isinstance(agent, (str, Path)):
         agent = load_agent(agent)
     env_id = env_id or agent.env_id
     kw = agent.env_kwargs if env_kwargs is None else env_kwargs
