@@ -64,7 +64,7 @@ def make_controller(name: str, spec: TaskSpec, gains: Gains | None = None) -> Sc
         return HierarchicalController(spec, prediction=True, robust=True, gains=gains, name=name,
                                       estimator=TargetEstimator(spec), disturbance_observer=dob)
     if name == "MPC":
-        from controllers.mpc import MPCController  # casadi is imported only when an MPC is made
+        from controllers.mpc import MPCController
 
         return MPCController(spec, name=name)
     raise ValueError(f"controller={name!r} is unknown: valid controllers are {list(ALL_CONTROLLERS)}")
