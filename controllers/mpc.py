@@ -323,32 +323,69 @@ def _linearize(x0, F0, cur, dh, cbar, ref, gam, a0, msteps, dt, lim, mi, wsq, wt
 
 
 @njit(cache=True)
-def _admm(Pinv, q, Amat, lo, hi, x, z, y, rho, sigma, iters, relax):
+def _factor(H, reg, AtA, rho, L):
+    """L L' = H + reg + rho A'A for every env (n, nv, nv) (symmetric positive definite); L lower.
+    ``reg`` (nv, nv) and ``AtA`` (nv, nv) are shared, ``rho`` (n,) per env."""
+    n, nv, _ = H.shape
+    for i in range(n):
+        r = rho[i]
+        for a in range(nv):
+            for c in range(a + 1):
+                acc = H[i, a, c] + reg[a, c] + r * AtA[a, c]
+                for k in range(c):
+                    acc -= L[i, a, k] * L[i, c, k]
+                if a == c:
+                    L[i, a, a] = math.sqrt(acc)
+                else:
+                    L[i, a, c] = acc / L[i, c, c]
+            for c in range(a + 1, nv):
+                L[i, a, c] = 0.0
+
+
+@njit(cache=True)
+def _admm(L, q, Rb, lo, hi, x, z, y, rho, sigma, iters, relax):
     """OSQP's ADMM iteration for min 1/2 x'Hx + q'x s.t. lo <= A x <= hi, for every env, with
-    ``Pinv`` = (H + sigma I + rho A'A)^-1 (n, nv, nv) given; x (n, nv), z and y (n, nc) are
-    the warm start and are updated in place."""
+    A = [I; R] (R: the rate-limit rows, the same (Nb, Nb) matrix ``Rb`` for each axis, index
+    3 b + axis; Rb of size 0: A = I) and L L' = H + sigma I + rho A'A (n, nv, nv) given.
+    x (n, nv), z and y (n, nc) are the warm start and are updated in place."""
     n, nv = x.shape
-    nc = Amat.shape[0]
+    Nb = nv // 3
+    has_rate = Rb.shape[0] > 0
     rhs = np.empty(nv)
     xt = np.empty(nv)
+    w = np.empty(z.shape[1])
     for i in range(n):
         r = rho[i]
         for _ in range(iters):
+            for c in range(z.shape[1]):
+                w[c] = r * z[i, c] - y[i, c]
             for a in range(nv):
-                rhs[a] = sigma * x[i, a] - q[i, a]
-            for c in range(nc):
-                w = r * z[i, c] - y[i, c]
-                for a in range(nv):
-                    rhs[a] += Amat[c, a] * w
-            for a in range(nv):
-                acc = 0.0
-                for b in range(nv):
-                    acc += Pinv[i, a, b] * rhs[b]
-                xt[a] = acc
-            for c in range(nc):
-                zt = 0.0
-                for a in range(nv):
-                    zt += Amat[c, a] * xt[a]
+                rhs[a] = sigma * x[i, a] - q[i, a] + w[a]
+            if has_rate:  # + R' w2
+                for bb in range(Nb):
+                    for b in range(bb, Nb):
+                        rb = Rb[b, bb]
+                        if rb != 0.0:
+                            for ax in range(3):
+                                rhs[3 * bb + ax] += rb * w[nv + 3 * b + ax]
+            for a in range(nv):  # forward: L t = rhs
+                acc = rhs[a]
+                for k in range(a):
+                    acc -= L[i, a, k] * xt[k]
+                xt[a] = acc / L[i, a, a]
+            for a in range(nv - 1, -1, -1):  # backward: L' xt = t
+                acc = xt[a]
+                for k in range(a + 1, nv):
+                    acc -= L[i, k, a] * xt[k]
+                xt[a] = acc / L[i, a, a]
+            for c in range(z.shape[1]):
+                if c < nv:
+                    zt = xt[c]
+                else:
+                    b, ax = (c - nv) // 3, (c - nv) % 3
+                    zt = 0.0
+                    for bb in range(b + 1):
+                        zt += Rb[b, bb] * xt[3 * bb + ax]
                 zr = relax * zt + (1.0 - relax) * z[i, c]
                 zn = zr + y[i, c] / r
                 if zn < lo[i, c]:
@@ -423,6 +460,9 @@ class MPCController(ScriptedPolicy):
                     R[3 * b:3 * b + 3, 3 * bb:3 * bb + 3] -= gam[j, bb] * np.eye(3)
             rows.append(R)
             self._rate_f0 = np.repeat(f0, 3)
+            self._Rb = np.ascontiguousarray(R[0::3, 0::3])  # the same for each axis
+        else:
+            self._Rb = np.zeros((0, 0))
         self._A = np.ascontiguousarray(np.vstack(rows))
         self._AtA = self._A.T @ self._A
         Dm = np.eye(nv) - np.eye(nv, k=-3)  # command changes between blocks
@@ -529,14 +569,15 @@ class MPCController(ScriptedPolicy):
         _linearize(x0, F0, cur, d_hat, cbar.reshape(n, Nb, 3), refs, self._gam, self._a0, self.block_steps,
                    self.spec.dt, self._limits, self._mi, self._wsq, math.sqrt(cfg.w_terminal), res, jac)
         Jt = jac.transpose(0, 2, 1)
-        H = Jt @ jac + cfg.w_force * np.eye(nv) + cfg.w_rate * self._DtD
+        H = Jt @ jac  # Gauss-Newton: the QP in c of |res + jac (c - cbar)|^2 / 2 + regularisation
         q = (Jt @ (res - (jac @ cbar[..., None])[..., 0])[..., None])[..., 0]
         q[:, :3] -= cfg.w_rate * self._cmd  # the first block's change is against the last command
-        scale = np.trace(H, axis1=1, axis2=2) / nv
+        reg = cfg.w_force * np.eye(nv) + cfg.w_rate * self._DtD
+        scale = (np.trace(H, axis1=1, axis2=2) + np.trace(reg)) / nv  # mean diagonal of each env's Hessian
         rho = cfg.admm_rho * scale
         sigma = 1e-6 * float(np.median(scale))
-        P = H + sigma * np.eye(nv) + rho[:, None, None] * self._AtA
-        Pinv = np.linalg.inv(P)
+        L = np.empty_like(H)
+        _factor(H, reg + sigma * np.eye(nv), self._AtA, rho, L)  # H + reg + sigma I + rho A'A
         lo = np.full((n, self._A.shape[0]), -1.0)
         hi = np.full((n, self._A.shape[0]), 1.0)
         if self._rate_f0.size:
@@ -544,7 +585,7 @@ class MPCController(ScriptedPolicy):
             base = self._rate_f0[None, :] * np.tile(F0, (1, Nb))  # F0's share of F_b, index 3 b + axis
             lo[:, nv:] = base - band
             hi[:, nv:] = base + band
-        _admm(Pinv, q, self._A, lo, hi, self._c, self._z, self._y, rho, sigma, cfg.admm_iterations, 1.6)
+        _admm(L, q, self._Rb, lo, hi, self._c, self._z, self._y, rho, sigma, cfg.admm_iterations, 1.6)
         Ax = self._c @ self._A.T
         self.last_violation = np.max(np.maximum(np.maximum(lo - Ax, Ax - hi), 0.0), axis=1)
         self.last_solution = self._c[:, :3].copy()
