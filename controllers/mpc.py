@@ -323,15 +323,23 @@ def _linearize(x0, F0, cur, dh, cbar, ref, gam, a0, msteps, dt, lim, mi, wsq, wt
 
 
 @njit(cache=True)
-def _factor(H, reg, AtA, rho, L):
-    """L L' = H + reg + rho A'A for every env (n, nv, nv) (symmetric positive definite); L lower.
-    ``reg`` (nv, nv) and ``AtA`` (nv, nv) are shared, ``rho`` (n,) per env."""
+def _factor(H, reg, Rb, rho, sigma, L):
+    """L L' = H + reg + sigma I + A' diag(rho) A for every env (n, nv, nv) (symmetric positive
+    definite); L lower. A = [I; R] as in :func:`_admm`; ``reg`` (nv, nv) is shared, ``rho``
+    (n, nc) and ``sigma`` (n,) are per env."""
     n, nv, _ = H.shape
+    Nb = nv // 3
+    has_rate = Rb.shape[0] > 0
     for i in range(n):
-        r = rho[i]
         for a in range(nv):
             for c in range(a + 1):
-                acc = H[i, a, c] + reg[a, c] + r * AtA[a, c]
+                acc = H[i, a, c] + reg[a, c]
+                if a == c:
+                    acc += sigma[i] + rho[i, a]
+                if has_rate and a % 3 == c % 3:  # R' diag(rho_R) R, per axis
+                    ba, bc, ax = a // 3, c // 3, a % 3
+                    for b in range(ba, Nb):
+                        acc += Rb[b, ba] * rho[i, nv + 3 * b + ax] * Rb[b, bc]
                 for k in range(c):
                     acc -= L[i, a, k] * L[i, c, k]
                 if a == c:
@@ -346,7 +354,8 @@ def _factor(H, reg, AtA, rho, L):
 def _admm(L, q, Rb, lo, hi, x, z, y, rho, sigma, iters, relax):
     """OSQP's ADMM iteration for min 1/2 x'Hx + q'x s.t. lo <= A x <= hi, for every env, with
     A = [I; R] (R: the rate-limit rows, the same (Nb, Nb) matrix ``Rb`` for each axis, index
-    3 b + axis; Rb of size 0: A = I) and L L' = H + sigma I + rho A'A (n, nv, nv) given.
+    3 b + axis; Rb of size 0: A = I) and L L' = H + sigma I + A' diag(rho) A (n, nv, nv) given
+    (``rho``: (n, nc), a penalty per constraint; ``sigma``: (n,)).
     x (n, nv), z and y (n, nc) are the warm start and are updated in place."""
     n, nv = x.shape
     Nb = nv // 3
@@ -355,12 +364,11 @@ def _admm(L, q, Rb, lo, hi, x, z, y, rho, sigma, iters, relax):
     xt = np.empty(nv)
     w = np.empty(z.shape[1])
     for i in range(n):
-        r = rho[i]
         for _ in range(iters):
             for c in range(z.shape[1]):
-                w[c] = r * z[i, c] - y[i, c]
+                w[c] = rho[i, c] * z[i, c] - y[i, c]
             for a in range(nv):
-                rhs[a] = sigma * x[i, a] - q[i, a] + w[a]
+                rhs[a] = sigma[i] * x[i, a] - q[i, a] + w[a]
             if has_rate:  # + R' w2
                 for bb in range(Nb):
                     for b in range(bb, Nb):
@@ -387,12 +395,12 @@ def _admm(L, q, Rb, lo, hi, x, z, y, rho, sigma, iters, relax):
                     for bb in range(b + 1):
                         zt += Rb[b, bb] * xt[3 * bb + ax]
                 zr = relax * zt + (1.0 - relax) * z[i, c]
-                zn = zr + y[i, c] / r
+                zn = zr + y[i, c] / rho[i, c]
                 if zn < lo[i, c]:
                     zn = lo[i, c]
                 elif zn > hi[i, c]:
                     zn = hi[i, c]
-                y[i, c] += r * (zr - zn)
+                y[i, c] += rho[i, c] * (zr - zn)
                 z[i, c] = zn
             for a in range(nv):
                 x[i, a] = relax * xt[a] + (1.0 - relax) * x[i, a]
@@ -464,7 +472,6 @@ class MPCController(ScriptedPolicy):
         else:
             self._Rb = np.zeros((0, 0))
         self._A = np.ascontiguousarray(np.vstack(rows))
-        self._AtA = self._A.T @ self._A
         Dm = np.eye(nv) - np.eye(nv, k=-3)  # command changes between blocks
         self._DtD = Dm.T @ Dm
         nm = spec.nominal
@@ -516,6 +523,7 @@ class MPCController(ScriptedPolicy):
         self._y = np.zeros((n, nc))
         self._F = np.zeros((n, 3))  # applied force of the last step [N, N, N m] (the plant starts at 0)
         self._cmd = np.zeros((n, 3))  # last command (normalised)
+        self._rho_mult = np.ones(n)  # adaptive factor of the ADMM penalty
         self._psi_unwrapped = psi_f.copy()
 
     def forces(self, obs: np.ndarray, reset_mask: np.ndarray) -> np.ndarray:
@@ -530,6 +538,7 @@ class MPCController(ScriptedPolicy):
         if r.any():
             for arr in (self._c, self._z, self._y, self._F, self._cmd):
                 arr[r] = 0.0
+            self._rho_mult[r] = 1.0
         dpsi = psi_f - self._psi_unwrapped
         self._psi_unwrapped = np.where(r, psi_f, self._psi_unwrapped + np.arctan2(np.sin(dpsi), np.cos(dpsi)))
         x0 = np.column_stack([odom, self._psi_unwrapped, o["u"], o["v"], o["r"]])
@@ -543,7 +552,7 @@ class MPCController(ScriptedPolicy):
         refs = self._references(est.valid, x0)
         t0 = time.perf_counter()
         F0 = self._F / self._limits
-        cmd = self._solve(x0, F0, cur, d_hat, refs)
+        cmd = self._solve(x0, F0, cur, d_hat, refs, r)
         self.solve_times.append((time.perf_counter() - t0) / n)
         # the exact feasible interval of this step's command: |c| <= 1, |alpha (c - F0)| <= rate dt
         lo, hi = np.full((n, 3), -1.0), np.full((n, 3), 1.0)
@@ -559,8 +568,9 @@ class MPCController(ScriptedPolicy):
             self.dob.applied(self._F)
         return Fc
 
-    def _solve(self, x0, F0, cur, d_hat, refs) -> np.ndarray:
-        """One Gauss-Newton step + ADMM for every env; returns the first commands (n, 3)."""
+    def _solve(self, x0, F0, cur, d_hat, refs, cold) -> np.ndarray:
+        """One Gauss-Newton step + ADMM for every env (``cold``: envs whose episode starts here);
+        returns the first commands (n, 3)."""
         cfg = self.config
         n, Nb, nv = x0.shape[0], cfg.intervals, self._nv
         cbar = np.clip(self._c, -1.0, 1.0)
@@ -573,11 +583,15 @@ class MPCController(ScriptedPolicy):
         q = (Jt @ (res - (jac @ cbar[..., None])[..., 0])[..., None])[..., 0]
         q[:, :3] -= cfg.w_rate * self._cmd  # the first block's change is against the last command
         reg = cfg.w_force * np.eye(nv) + cfg.w_rate * self._DtD
-        scale = (np.trace(H, axis1=1, axis2=2) + np.trace(reg)) / nv  # mean diagonal of each env's Hessian
-        rho = cfg.admm_rho * scale
-        sigma = 1e-6 * float(np.median(scale))
+        diag = np.diagonal(H, axis1=1, axis2=2) + np.diagonal(reg)  # (n, nv)
+        # ADMM penalty: admm_rho times the mean diagonal of the env's Hessian, the same for every
+        # constraint (a penalty scaled per variable converged more slowly); per env, so an env's
+        # solution does not depend on the others in the batch
+        nc = self._A.shape[0]
+        rho = np.repeat((cfg.admm_rho * diag.mean(axis=1) * self._rho_mult)[:, None], nc, axis=1)
+        sigma = 1e-6 * diag.mean(axis=1)
         L = np.empty_like(H)
-        _factor(H, reg + sigma * np.eye(nv), self._AtA, rho, L)  # H + reg + sigma I + rho A'A
+        _factor(H, reg, self._Rb, rho, sigma, L)
         lo = np.full((n, self._A.shape[0]), -1.0)
         hi = np.full((n, self._A.shape[0]), 1.0)
         if self._rate_f0.size:
@@ -586,8 +600,27 @@ class MPCController(ScriptedPolicy):
             lo[:, nv:] = base - band
             hi[:, nv:] = base + band
         _admm(L, q, self._Rb, lo, hi, self._c, self._z, self._y, rho, sigma, cfg.admm_iterations, 1.6)
-        Ax = self._c @ self._A.T
+        cold = np.flatnonzero(cold)
+        if cold.size:  # a fresh episode has no warm start: ten times the iterations, for those envs only
+            c, z, y = self._c[cold], self._z[cold], self._y[cold]
+            _admm(L[cold], q[cold], self._Rb, lo[cold], hi[cold], c, z, y, rho[cold], sigma[cold],
+                  10 * cfg.admm_iterations, 1.6)
+            self._c[cold], self._z[cold], self._y[cold] = c, z, y
+        # products per env (a (1, k) row each), so that an env's numbers do not depend on the batch
+        Ax = (self._c[:, None, :] @ self._A.T)[:, 0]
         self.last_violation = np.max(np.maximum(np.maximum(lo - Ax, Ax - hi), 0.0), axis=1)
+        # OSQP's rule for the penalty, applied to the next step's problem (similar to this one:
+        # no refactorisation): rho *= sqrt(relative primal residual / relative dual residual)
+        Hx = (H @ self._c[..., None])[..., 0] + (self._c[:, None, :] @ reg)[:, 0]
+        Aty = (self._y[:, None, :] @ self._A)[:, 0]
+        eps = 1e-12
+        zmax = np.abs(self._z).max(axis=1)
+        prim = np.abs(Ax - self._z).max(axis=1) / (np.maximum(np.abs(Ax).max(axis=1), zmax) + eps)
+        dual = np.abs(Hx + q + Aty).max(axis=1) / (np.maximum(np.maximum(np.abs(Hx).max(axis=1),
+                                                                         np.abs(Aty).max(axis=1)),
+                                                              np.abs(q).max(axis=1)) + eps)
+        ratio = np.sqrt((prim + eps) / (dual + eps))
+        self._rho_mult = np.clip(self._rho_mult * np.clip(ratio, 0.2, 5.0), 1e-3, 1e3)
         self.last_solution = self._c[:, :3].copy()
         return self._c[:, :3].copy()
 
