@@ -28,11 +28,14 @@ nominal model of the task spec (ARCHITECTURE.md, point 10):
   (RK4, one step per control step) with its exact sensitivities to the commands (the RK4
   step's chain rule, :func:`_linearize`), condensed into a dense QP in the commands alone
   (``3 intervals`` variables), and the QP is solved for every env at once by ADMM (OSQP's
-  iteration: fixed ``admm_iterations``, warm-started from the previous step, one matrix
-  inverse per env and step; :func:`_admm`). The first command is finally clipped to the exact
-  feasible interval of the first step (force and rate limit given the applied force), so the
-  limits hold at every step whatever ADMM's residual; ``last_violation`` keeps how far ADMM's
-  own solution was outside its constraints before that clip.
+  iteration, :func:`_admm`: ``admm_iterations``, warm-started from the previous step, one
+  Cholesky factorisation per env and step, :func:`_factor`); an env whose episode starts (no
+  warm start) or whose solution is still outside its constraints by more than 1e-3 (a packet
+  moved the reference) gets ten times the iterations, the others not. The first command is
+  finally clipped to the exact feasible interval of the first step (force and rate limit given
+  the applied force), so the limits hold at every step whatever ADMM's residual;
+  ``last_violation`` keeps how far ADMM's own solution was outside its constraints before that
+  clip (``experiments/bench_mpc.py`` reports it).
 
 The previous MPC (multiple shooting, CasADi's osqp per env, no actuator in its model) stays as
 :class:`CasadiMPCController` for comparison (``experiments/bench_mpc.py``); it is not
@@ -75,8 +78,13 @@ def _check_int(obj: object, name: str, lo: int) -> None:
 
 @dataclass(frozen=True, kw_only=True)
 class MPCConfig:
-    """Settings of :class:`MPCController` (all ours; tuning: ``experiments/bench_mpc.py``'s
-    docstring and docs/benchmark.md name the training seeds)."""
+    """Settings of :class:`MPCController` (all ours). The weights and horizon are the previous
+    MPC's (:class:`CasadiMPCConfig`, chosen on seeds 100-109 of S4 and S2). Tried on training
+    seeds 500-519 of Hard (w_pos 10 / 30 / 100, w_vel 0.3 / 1, horizon 3 / 4 s, 30 / 100 ADMM
+    iterations) and of Medium and Easy (w_pos 30 / 100, observer time constant 0.5 / 1 s): the
+    steady-state IQM moved by at most 0.6 %, so the defaults were kept (the error on the tiers
+    is the estimate's, not the tracking's); the thruster model is what matters (Medium without
+    it: 0.78 m instead of 0.10 m)."""
 
     horizon_s: float = 3.0  #: prediction horizon [s]
     intervals: int = 20  #: command blocks over the horizon (each a whole number of control steps)
@@ -523,7 +531,6 @@ class MPCController(ScriptedPolicy):
         self._y = np.zeros((n, nc))
         self._F = np.zeros((n, 3))  # applied force of the last step [N, N, N m] (the plant starts at 0)
         self._cmd = np.zeros((n, 3))  # last command (normalised)
-        self._rho_mult = np.ones(n)  # adaptive factor of the ADMM penalty
         self._psi_unwrapped = psi_f.copy()
 
     def forces(self, obs: np.ndarray, reset_mask: np.ndarray) -> np.ndarray:
@@ -538,7 +545,6 @@ class MPCController(ScriptedPolicy):
         if r.any():
             for arr in (self._c, self._z, self._y, self._F, self._cmd):
                 arr[r] = 0.0
-            self._rho_mult[r] = 1.0
         dpsi = psi_f - self._psi_unwrapped
         self._psi_unwrapped = np.where(r, psi_f, self._psi_unwrapped + np.arctan2(np.sin(dpsi), np.cos(dpsi)))
         x0 = np.column_stack([odom, self._psi_unwrapped, o["u"], o["v"], o["r"]])
@@ -585,10 +591,11 @@ class MPCController(ScriptedPolicy):
         reg = cfg.w_force * np.eye(nv) + cfg.w_rate * self._DtD
         diag = np.diagonal(H, axis1=1, axis2=2) + np.diagonal(reg)  # (n, nv)
         # ADMM penalty: admm_rho times the mean diagonal of the env's Hessian, the same for every
-        # constraint (a penalty scaled per variable converged more slowly); per env, so an env's
-        # solution does not depend on the others in the batch
+        # constraint (a penalty scaled per variable, or adapted from step to step by OSQP's
+        # residual-balance rule, left more steps outside the constraints on Hard); per env, so
+        # an env's solution does not depend on the others in the batch
         nc = self._A.shape[0]
-        rho = np.repeat((cfg.admm_rho * diag.mean(axis=1) * self._rho_mult)[:, None], nc, axis=1)
+        rho = np.repeat((cfg.admm_rho * diag.mean(axis=1))[:, None], nc, axis=1)
         sigma = 1e-6 * diag.mean(axis=1)
         L = np.empty_like(H)
         _factor(H, reg, self._Rb, rho, sigma, L)
@@ -600,27 +607,19 @@ class MPCController(ScriptedPolicy):
             lo[:, nv:] = base - band
             hi[:, nv:] = base + band
         _admm(L, q, self._Rb, lo, hi, self._c, self._z, self._y, rho, sigma, cfg.admm_iterations, 1.6)
-        cold = np.flatnonzero(cold)
-        if cold.size:  # a fresh episode has no warm start: ten times the iterations, for those envs only
-            c, z, y = self._c[cold], self._z[cold], self._y[cold]
-            _admm(L[cold], q[cold], self._Rb, lo[cold], hi[cold], c, z, y, rho[cold], sigma[cold],
-                  10 * cfg.admm_iterations, 1.6)
-            self._c[cold], self._z[cold], self._y[cold] = c, z, y
         # products per env (a (1, k) row each), so that an env's numbers do not depend on the batch
         Ax = (self._c[:, None, :] @ self._A.T)[:, 0]
+        viol = np.max(np.maximum(np.maximum(lo - Ax, Ax - hi), 0.0), axis=1)
+        # a fresh episode (no warm start) or a solution still outside its constraints by more
+        # than 1e-3 (a packet moved the reference): ten times the iterations, for those envs only
+        again = np.flatnonzero(cold | (viol > 1e-3))
+        if again.size:
+            c, z, y = self._c[again], self._z[again], self._y[again]
+            _admm(L[again], q[again], self._Rb, lo[again], hi[again], c, z, y, rho[again], sigma[again],
+                  10 * cfg.admm_iterations, 1.6)
+            self._c[again], self._z[again], self._y[again] = c, z, y
+        Ax = (self._c[:, None, :] @ self._A.T)[:, 0]
         self.last_violation = np.max(np.maximum(np.maximum(lo - Ax, Ax - hi), 0.0), axis=1)
-        # OSQP's rule for the penalty, applied to the next step's problem (similar to this one:
-        # no refactorisation): rho *= sqrt(relative primal residual / relative dual residual)
-        Hx = (H @ self._c[..., None])[..., 0] + (self._c[:, None, :] @ reg)[:, 0]
-        Aty = (self._y[:, None, :] @ self._A)[:, 0]
-        eps = 1e-12
-        zmax = np.abs(self._z).max(axis=1)
-        prim = np.abs(Ax - self._z).max(axis=1) / (np.maximum(np.abs(Ax).max(axis=1), zmax) + eps)
-        dual = np.abs(Hx + q + Aty).max(axis=1) / (np.maximum(np.maximum(np.abs(Hx).max(axis=1),
-                                                                         np.abs(Aty).max(axis=1)),
-                                                              np.abs(q).max(axis=1)) + eps)
-        ratio = np.sqrt((prim + eps) / (dual + eps))
-        self._rho_mult = np.clip(self._rho_mult * np.clip(ratio, 0.2, 5.0), 1e-3, 1e3)
         self.last_solution = self._c[:, :3].copy()
         return self._c[:, :3].copy()
 
