@@ -375,6 +375,9 @@ def _add_benchmark_commands(sub: Any) -> None:
     b.add_argument("--cache", dest="cache_dir", default=None,
                    help="directory of per-run episode caches, reused while the episode code equals git HEAD "
                         "(default: no cache)")
+    b.add_argument("--floors", action="store_true",
+                   help="add each v1 tier's control and information floors as reference rows and a 'gap closed' "
+                        "column (agents/floors.py; about a minute per tier)")
     b.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     b.set_defaults(handler=_cmd_benchmark)
 
@@ -426,7 +429,7 @@ def _cmd_benchmark(args: argparse.Namespace) -> None:
     _check_writable(Path(args.out), "--out", want_dir=True)
     res = benchmark(args.policies, args.tiers, seeds=args.seeds, out_dir=args.out, n_resamples=args.resamples,
                     bootstrap_seed=args.bootstrap_seed, batched=args.batched, progress=args.progress,
-                    cache_dir=args.cache_dir,
+                    cache_dir=args.cache_dir, floors=args.floors,
                     command="auv-follow " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["benchmark"] else None)
     print(res.files["leaderboard_md"].read_text() if res.files else res.leaderboard.to_string())
     if "Hard" in set(res.leaderboard["tier"]):
