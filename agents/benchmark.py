@@ -673,6 +673,35 @@ def scores(episodes: pd.DataFrame, metric: str) -> pd.Series:
     return s
 
 
+def paired_difference(episodes: pd.DataFrame, tier: str, policy: str, other: str, metric: str = "true_steady_mean",
+                      *, n_resamples: int = DEFAULT_RESAMPLES, seed: int = DEFAULT_BOOTSTRAP_SEED,
+                      confidence: float = 0.95) -> tuple[float, float, float]:
+    """Mean over the test seeds of ``policy``'s score minus ``other``'s on the same seed (a
+    method's runs averaged per seed first), with a percentile bootstrap CI over seeds [m];
+    negative: ``policy`` is better. Seeds that only one of them has are left out.
+
+    Raises:
+        ValueError: a policy has no episodes on ``tier``.
+    """
+    ep = episodes[episodes["tier"] == tier]
+    per_seed = []
+    for name in (policy, other):
+        d = ep[ep["policy"] == name]
+        if d.empty:
+            raise ValueError(f"policy={name!r} has no episodes on tier {tier!r}")
+        per_seed.append(pd.Series(scores(d, metric).to_numpy(), index=d["seed"].to_numpy()).groupby(level=0).mean())
+    a, b = per_seed[0].align(per_seed[1], join="inner")
+    diff = (a - b).to_numpy()
+    if diff.size == 0:
+        return math.nan, math.nan, math.nan
+    if diff.size == 1 or np.all(diff == diff[0]):
+        return float(diff.mean()), float(diff[0]), float(diff[0])
+    rng = np.random.default_rng(seed)
+    boot = diff[rng.integers(0, diff.size, (n_resamples, diff.size))].mean(axis=1)
+    q = 100 * (1 - confidence) / 2
+    return float(diff.mean()), float(np.percentile(boot, q)), float(np.percentile(boot, 100 - q))
+
+
 def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_METRICS,
                 n_resamples: int = DEFAULT_RESAMPLES, seed: int = DEFAULT_BOOTSTRAP_SEED,
                 confidence: float = 0.95, progress: bool = False) -> pd.DataFrame:
@@ -690,7 +719,9 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
         ``<m>_iqm_lo``, ``<m>_iqm_hi``, ``<m>_mean``, ``<m>_mean_lo``, ``<m>_mean_hi``;
         ``termination_rate``, ``best_classical``, ``<m0>_iqm_change_pct`` (vs the best
         classical baseline), ``poi``, ``poi_lo``, ``poi_hi``; ``run_iqm_min`` /
-        ``run_iqm_max`` (spread of the per-run IQMs of ``metrics[0]``); with reference rows
+        ``run_iqm_max`` (spread of the per-run IQMs of ``metrics[0]``); ``paired_diff``,
+        ``paired_diff_lo``, ``paired_diff_hi`` (:func:`paired_difference` of ``metrics[0]`` against
+        the best classical baseline, same seeds, in m); with reference rows
         (``kind="reference"``, the floors of :mod:`agents.floors`) also ``gap_closed``.
     """
     need = {"tier", "policy", "kind", "run", "terminated", *metrics}
@@ -719,7 +750,7 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
         rows.append(row)
     board = pd.DataFrame(rows)
     board["best_classical"] = None
-    for c in (f"{m0}_iqm_change_pct", "poi", "poi_lo", "poi_hi"):
+    for c in (f"{m0}_iqm_change_pct", "poi", "poi_lo", "poi_hi", "paired_diff", "paired_diff_lo", "paired_diff_hi"):
         board[c] = np.nan
     for tier, idx in board.groupby("tier", sort=False).groups.items():
         sub = board.loc[idx]
@@ -736,6 +767,10 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
             x = scores(ep_t[ep_t["policy"] == board.at[i, "policy"]], m0).to_numpy()
             board.loc[i, ["poi", "poi_lo", "poi_hi"]] = probability_of_improvement(
                 x, y, n_resamples=max(200, n_resamples // 5), seed=seed, confidence=confidence)
+            if board.at[i, "kind"] != "reference":
+                board.loc[i, ["paired_diff", "paired_diff_lo", "paired_diff_hi"]] = paired_difference(
+                    ep_t, tier, board.at[i, "policy"], best, m0, n_resamples=n_resamples, seed=seed,
+                    confidence=confidence)
     if (board["kind"] == "reference").any():  # floors (agents/floors.py): their gap column
         from agents.floors import add_gap_closed
 
@@ -809,8 +844,10 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
              "True-reference tracking error [m] (eq. (65)), steady state t >= 10 s and full run: IQM and mean "
              "over the tier's test episodes with 95 % stratified-bootstrap CIs (strata: training runs); "
              "P(better) = probability that an episode has a lower steady-state error than one of the tier's best "
-             "classical baseline (rliable's probability of improvement); a terminated episode scores the loss "
-             "threshold.", ""]
+             "classical baseline (rliable's probability of improvement, unpaired); paired diff = mean over the "
+             "test seeds of (this policy's steady-state error - the best classical's on the same seed), runs "
+             "averaged per seed, with a 95 % bootstrap CI over seeds (negative: better); a terminated episode "
+             "scores the loss threshold.", ""]
     m0 = metrics[0]
     for tier, sub in board.groupby("tier", sort=False):
         best = sub["best_classical"].iloc[0]
@@ -819,7 +856,8 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
         for m in metrics:
             short = m.replace("true_", "").replace("_mean", "")
             head += [f"{short} IQM", f"{short} mean"]
-        head += ["vs best classical (IQM)", "P(better) vs best classical", "terminated"]
+        head += ["vs best classical (IQM)", "paired diff vs best classical [m]", "P(better) vs best classical",
+                 "terminated"]
         gap = "gap_closed" in sub and sub["gap_closed"].notna().any()  # floors present (agents/floors.py)
         head += ["gap closed"] if gap else []
         lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -831,6 +869,9 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
                           _fmt_ci(r[f"{m}_mean"], r[f"{m}_mean_lo"], r[f"{m}_mean_hi"])]
             chg = r.get(f"{m0}_iqm_change_pct")
             cells.append("-" if chg is None or not np.isfinite(chg) else f"{chg:+.1f} %")
+            pdiff = r.get("paired_diff")
+            cells.append("-" if pdiff is None or not np.isfinite(pdiff) or r["policy"] == best else
+                         _fmt_ci(pdiff, r["paired_diff_lo"], r["paired_diff_hi"]))
             cells.append(_fmt_ci(r["poi"], r["poi_lo"], r["poi_hi"], 2))
             cells.append(f"{100 * r['termination_rate']:.0f} %")
             if gap:

@@ -353,7 +353,8 @@ def _add_benchmark_commands(sub: Any) -> None:
                        description="Score policies on the tiers' published test seeds and write the per-episode "
                                    "table, the leaderboard (.md/.csv/.png), one recorded episode per tier and policy "
                                    "(traces.parquet) and benchmark.json (docs/benchmark.md). Costs: scripted "
-                                   "controllers and agents are quick; MPC (a batched QP per step) about a minute per tier of 100 seeds. "
+                                   "controllers and agents are quick; MPC (a batched QP per step) about a minute "
+                                   "per tier of 100 seeds. "
                                    "Quick look: --tiers Hard --policies PID PROPOSED --seeds 3000000-3000009.")
     b.add_argument("--policies", nargs="+", default=None, metavar="POLICY",
                    help="controller names, 'classical' (every scripted controller, MPC included: slow), run "

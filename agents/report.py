@@ -299,7 +299,7 @@ def _table_html(board: pd.DataFrame) -> str:
                                                         isinstance(best, str) else "") + "</h3>")
         head = ["policy", "kind", "runs x episodes", "steady IQM [m] [95 % CI]", "steady mean [m] [95 % CI]",
                 "full IQM [m] [95 % CI]", "full mean [m] [95 % CI]", "IQM vs best classical [%]",
-                "P(better) [95 % CI]", "terminated [%]"]
+                "paired diff vs best classical [m] [95 % CI]", "P(better) [95 % CI]", "terminated [%]"]
         gap = "gap_closed" in sub and sub["gap_closed"].notna().any()  # floors present (agents/floors.py)
         head += ["gap closed [-]"] if gap else []
         parts.append("<table class='leaderboard' data-tier='" + html.escape(str(tier)) + "'><thead><tr>" +
@@ -313,6 +313,8 @@ def _table_html(board: pd.DataFrame) -> str:
                      ci("true_steady_mean", "iqm"), ci("true_steady_mean", "mean"), ci("true_full_mean", "iqm"),
                      ci("true_full_mean", "mean"),
                      "-" if chg is None or not np.isfinite(chg) else f"{chg:+.1f} %",
+                     "-" if r["policy"] == best or not np.isfinite(r.get("paired_diff", np.nan)) else
+                     f"{r['paired_diff']:+.4f} [{r['paired_diff_lo']:+.4f}, {r['paired_diff_hi']:+.4f}]",
                      "-" if not np.isfinite(r["poi"]) else f"{r['poi']:.2f} [{r['poi_lo']:.2f}, {r['poi_hi']:.2f}]",
                      f"{100 * r['termination_rate']:.0f} %"]
             if gap:

@@ -41,8 +41,8 @@ _MAKE_ONLY_KWARGS = frozenset({"max_episode_steps", "disable_env_checker", "rend
 
 
 #: TaskSpec fields a scripted policy uses: they must be equal to the env's
-SPEC_FIELDS: tuple[str, ...] = ("dt", "delay_s", "delay_steps", "p_d", "psi_d", "nominal", "force_limits", "thruster_tc_s",
-                               "thruster_rate")
+SPEC_FIELDS: tuple[str, ...] = ("dt", "delay_s", "delay_steps", "p_d", "psi_d", "nominal", "force_limits",
+                               "thruster_tc_s", "thruster_rate")
 
 
 def _same(a: Any, b: Any) -> bool:

@@ -1,0 +1,50 @@
+"""Paired statistics of the leaderboard (issue 22): per-seed differences against the best
+classical baseline on the same test seeds, worked out by hand."""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+
+from agents.benchmark import leaderboard, paired_difference
+
+
+def _episodes(pairs, runs=("r",)):
+    rows = []
+    for s, (a, b) in enumerate(pairs):
+        for k, run in enumerate(runs):
+            rows.append(dict(tier="Hard", policy="A", kind="learned", run=run, seed=s, terminated=False,
+                             true_steady_mean=a + 0.01 * k, true_full_mean=a))
+        rows.append(dict(tier="Hard", policy="B", kind="classical", run="", seed=s, terminated=False,
+                         true_steady_mean=b, true_full_mean=b))
+    return pd.DataFrame(rows)
+
+
+def test_paired_difference_by_hand():
+    # differences -0.1, -0.1, -0.1, -0.15: mean -0.1125; every bootstrap mean lies in [-0.15, -0.1]
+    ep = _episodes([(0.5, 0.6), (0.4, 0.5), (0.3, 0.4), (0.2, 0.35)])
+    d, lo, hi = paired_difference(ep, "Hard", "A", "B", n_resamples=2000)
+    assert d == pytest.approx(-0.1125)
+    assert -0.15 - 1e-12 <= lo <= d <= hi <= -0.1 + 1e-12
+    board = leaderboard(ep, n_resamples=200).set_index("policy")
+    assert board.loc["A", "paired_diff"] == pytest.approx(-0.1125)
+    assert board.loc["B", "paired_diff"] == 0.0  # the best classical against itself
+
+
+def test_runs_are_averaged_per_seed_before_differencing():
+    # two runs of A at a and a + 0.01: per-seed mean a + 0.005, so every difference is -0.095
+    ep = _episodes([(0.5, 0.6), (0.4, 0.5), (0.3, 0.4)], runs=("r0", "r1"))
+    d, lo, hi = paired_difference(ep, "Hard", "A", "B")
+    assert d == pytest.approx(-0.095) and lo == pytest.approx(-0.095) and hi == pytest.approx(-0.095)
+
+
+def test_terminated_episode_scores_the_loss_threshold():
+    ep = _episodes([(0.5, 0.6), (0.4, 0.5)]).assign(fail_error_m=20.0)
+    ep.loc[(ep["policy"] == "A") & (ep["seed"] == 1), "terminated"] = True
+    d, _, _ = paired_difference(ep, "Hard", "A", "B")
+    assert d == pytest.approx(((0.5 - 0.6) + (20.0 - 0.5)) / 2)
+
+
+def test_unknown_policy_is_refused():
+    with pytest.raises(ValueError, match="policy='C'"):
+        paired_difference(_episodes([(0.5, 0.6)]), "Hard", "C", "B")
