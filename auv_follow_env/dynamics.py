@@ -90,7 +90,7 @@ DIST_WEIGHT = (0.6, 0.4)
 C_DT, C_NSUB, C_D, C_L, C_PDX, C_PDY, C_PSID = 0, 1, 2, 3, 4, 5, 6
 C_FU, C_FV, C_FR, C_MAXD, C_NSTEPS, C_EFFORT, C_INIT = 7, 8, 9, 10, 11, 12, 13
 C_WARM, C_Q, C_OBSV1 = 14, 15, 16  # warm-up steps before t = 0, queue capacity, 1 = v1 layout
-C_FAST = 17  # 1 = fast_math: the step's sin/cos by :func:`fast_sincos` (SIMD, <= 1 ULP), 0 = libm
+C_FAST = 17  # 1 = sincos="simd" (default): the step's sin/cos by :func:`fast_sincos` (SIMD, <= 1 ULP), 0 = libm
 NC = 18
 
 # --- proc columns (per env) --------------------------------------------------------------
@@ -197,15 +197,15 @@ def _clip(x, lo, hi):
     return y if y < hi else hi
 
 
-# --- fast_math: a vectorisable sin/cos ------------------------------------------------------
+# --- sincos="simd" (formerly fast_math): a vectorisable sin/cos ------------------------------
 # fdlibm's method (Sun Microsystems, 1993; freely distributable), written branch-free so that
 # a loop over envs compiles to SIMD code: x - n pi/2 in double-double by the two-round
 # Cody-Waite reduction of e_rem_pio2.c (pi/2 in 33-bit pieces, so each n * piece is exact
 # for n < 2^20), then the minimax polynomials of __kernel_sin / __kernel_cos with the tail.
 # Within 1 ULP of the exact value for |x| <= FAST_TRIG_MAX (tests/test_fast_math.py);
 # glibc's sin/cos are within 0.52 ULP (measured), and the two differ in the last bit for about 3 % of
-# arguments. Used only when an env is made with ``fast_math=True``: the default (libm)
-# results are frozen.
+# arguments. The envs' default (``sincos="simd"``) since issue 23; ``sincos="libm"`` keeps glibc's
+# scalar calls (the v0 golden arrays were recorded with them; the contract is a 1e-9 tolerance).
 _INVPIO2 = 6.36619772367581382433e-01
 _PIO2_1 = 1.57079632673412561417e+00  # first 33 bits of pi/2
 _PIO2_2 = 6.07710050630396597660e-11  # next 33 bits
@@ -630,7 +630,7 @@ def integrate(state, p, cfg, t0, forces, fast=False):
 
     The bare physics kernel (follower and target, the tones only), without link,
     observation or reward: what the speed benchmark compares the env against. ``fast``:
-    the sin/cos by :func:`fast_sincos` (fast_math) instead of libm.
+    the sin/cos by :func:`fast_sincos` (the envs' ``sincos="simd"``) instead of libm.
     """
     n = state.shape[0]
     nsub = int(cfg[C_NSUB])
@@ -1096,8 +1096,8 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stag
     Block by block: actions and thrusters per env, the RK4 step for the block's envs at
     once (:func:`advance_block`), per env the random processes, the new step's libm values
     for the block at once (:func:`refresh_trig_block`), then per env the link, the
-    observation, the reward and termination. ``cfg[C_FAST]`` = 1 (fast_math) computes the
-    step's sin/cos by :func:`fast_sincos`.
+    observation, the reward and termination. ``cfg[C_FAST]`` = 1 (``sincos="simd"``, the
+    envs' default) computes the step's sin/cos by :func:`fast_sincos`, 0 by libm.
     """
     dt = cfg[C_DT]
     nsub = int(cfg[C_NSUB])
