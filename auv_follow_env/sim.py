@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from auv_follow_env import dynamics as dyn
-from auv_follow_env.kernel_one import packed_arrays, step_one
+from auv_follow_env.kernel_one import packed_arrays, reset_one, step_one
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1
 from auv_follow_env.params import LATENCY_MODELS, RANGEABLE, Condition, EnvConfig, VehicleParams
 
@@ -311,6 +311,12 @@ class BatchSim:
                 self.params[i], seeds[j], directions[j], self.conditions[i] = sample_params_v1(self.config, rng)
         elif len(idx):  # v0: each env's 12 uniforms from its own generator, then the rows at once
             self.params[idx] = params_from_uniforms(self.config, np.array([rng.random(12) for rng in rngs]))
+        if self.buf is not None:  # one packed env: the one-lane kernel (kernel_one)
+            if len(idx):
+                if idx[0] != 0:
+                    raise ValueError(f"env index {idx[0]} out of range for one env")
+                reset_one(self.buf, int(seeds[0]), float(directions[0]))
+            return
         dyn.reset_kernel(self.state, self.k, self.proc, self.queue, self.rs, self.params, self.cfg, idx, seeds,
                          directions, self.obs, self.truth)
 
