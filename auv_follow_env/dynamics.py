@@ -55,7 +55,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from llvmlite import ir as llir
+from numba import njit, prange, types
+from numba.extending import intrinsic
 
 # --- parameter columns (per env) ---------------------------------------------------------
 P_M, P_IZ, P_XU, P_YV, P_NR = 0, 1, 2, 3, 4  # true plant [kg, kg m^2, N s/m, N s/m, N m s]
@@ -90,7 +92,7 @@ DIST_WEIGHT = (0.6, 0.4)
 C_DT, C_NSUB, C_D, C_L, C_PDX, C_PDY, C_PSID = 0, 1, 2, 3, 4, 5, 6
 C_FU, C_FV, C_FR, C_MAXD, C_NSTEPS, C_EFFORT, C_INIT = 7, 8, 9, 10, 11, 12, 13
 C_WARM, C_Q, C_OBSV1 = 14, 15, 16  # warm-up steps before t = 0, queue capacity, 1 = v1 layout
-C_FAST = 17  # 1 = fast_math: the step's sin/cos by :func:`fast_sincos` (SIMD, <= 1 ULP), 0 = libm
+C_FAST = 17  # 1 = sincos="simd" (default): the step's sin/cos by :func:`fast_sincos` (SIMD, <= 1 ULP), 0 = libm
 NC = 18
 
 # --- proc columns (per env) --------------------------------------------------------------
@@ -197,15 +199,15 @@ def _clip(x, lo, hi):
     return y if y < hi else hi
 
 
-# --- fast_math: a vectorisable sin/cos ------------------------------------------------------
+# --- sincos="simd" (formerly fast_math): a vectorisable sin/cos ------------------------------
 # fdlibm's method (Sun Microsystems, 1993; freely distributable), written branch-free so that
 # a loop over envs compiles to SIMD code: x - n pi/2 in double-double by the two-round
 # Cody-Waite reduction of e_rem_pio2.c (pi/2 in 33-bit pieces, so each n * piece is exact
 # for n < 2^20), then the minimax polynomials of __kernel_sin / __kernel_cos with the tail.
 # Within 1 ULP of the exact value for |x| <= FAST_TRIG_MAX (tests/test_fast_math.py);
 # glibc's sin/cos are within 0.52 ULP (measured), and the two differ in the last bit for about 3 % of
-# arguments. Used only when an env is made with ``fast_math=True``: the default (libm)
-# results are frozen.
+# arguments. The envs' default (``sincos="simd"``) since issue 23; ``sincos="libm"`` keeps glibc's
+# scalar calls (the v0 golden arrays were recorded with them; the contract is a 1e-9 tolerance).
 _INVPIO2 = 6.36619772367581382433e-01
 _PIO2_1 = 1.57079632673412561417e+00  # first 33 bits of pi/2
 _PIO2_2 = 6.07710050630396597660e-11  # next 33 bits
@@ -424,10 +426,34 @@ def work_buffer(zeroed):
 _ZERO7 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
-@njit(cache=True, inline="always")
-def _ix(row, b):
-    """Index of lane b of row ``row`` (unsigned: no negative-index wrap-around to check)."""
-    return np.uint64(row * BLOCK + b)
+@intrinsic
+def _ix(typingctx, row, b):
+    """Index of lane b of row ``row``, ``row * BLOCK + b`` as uint64 (unsigned: no negative-index
+    wrap-around to check). An intrinsic: two LLVM instructions at each use, where an
+    ``inline="always"`` function made numba re-run its front end at each of the kernels' hundreds
+    of uses (cold start, issue 23)."""
+    if not isinstance(row, types.Integer) or not isinstance(b, types.Integer):
+        return None
+    sig = types.uint64(row, b)
+
+    def codegen(context, builder, sig, args):
+        r = context.cast(builder, args[0], sig.args[0], types.uint64)
+        lane = context.cast(builder, args[1], sig.args[1], types.uint64)
+        return builder.add(builder.mul(r, llir.Constant(llir.IntType(64), BLOCK)), lane)
+
+    return sig, codegen
+
+
+@intrinsic
+def _opaque(typingctx, x):
+    """``x`` typed as its non-literal type: passing ``_opaque(False)`` to a jitted function
+    compiles no specialisation for the literal (numba specialises calls on literal arguments)."""
+    sig = types.unliteral(x)(x)
+
+    def codegen(context, builder, sig, args):
+        return context.cast(builder, args[0], sig.args[0], sig.return_type)
+
+    return sig, codegen
 
 
 @njit(cache=True, inline="always")
@@ -473,19 +499,24 @@ def _heading_values(wk, m, fast):
     _sincos_rows(wk, K_ST + 8, K_STT, K_CT, m, fast)
 
 
+@njit(cache=True, inline="always")
+def _gather_lane(state, p, i, wk, b):
+    """Copy env i of state (N, 9) and params (N, NP) into lane b of the block's rows."""
+    for c in range(9):
+        wk[_ix(K_ST + c, b)] = state[i, c]
+    for c in range(_PP_COLS.shape[0]):
+        wk[_ix(K_PP + c, b)] = p[i, _PP_COLS[c]]
+    for j in range(10):
+        oc = _TONE_OMEGA[j]
+        wk[_ix(K_OM + j, b)] = p[i, oc] if oc >= 0 else (_W1 if oc == -1 else _W2)
+        wk[_ix(K_PH + j, b)] = p[i, _TONE_PHASE[j]]
+
+
 @njit(cache=True, error_model="numpy")
 def gather_block(state, p, a, m, wk):
     """Copy envs a..a+m-1 of state (N, 9) and params (N, NP) into the block's rows."""
     for b in range(m):
-        i = a + b
-        for c in range(9):
-            wk[_ix(K_ST + c, b)] = state[i, c]
-        for c in range(_PP_COLS.shape[0]):
-            wk[_ix(K_PP + c, b)] = p[i, _PP_COLS[c]]
-        for j in range(10):
-            oc = _TONE_OMEGA[j]
-            wk[_ix(K_OM + j, b)] = p[i, oc] if oc >= 0 else (_W1 if oc == -1 else _W2)
-            wk[_ix(K_PH + j, b)] = p[i, _TONE_PHASE[j]]
+        _gather_lane(state, p, a + b, wk, b)
 
 
 @njit(cache=True, inline="always")
@@ -576,19 +607,29 @@ def _rotation_factors(wk, hh, m):
 
 
 @njit(cache=True, error_model="numpy")
-def advance_block(wk, dt, nsub, m, pre, fast=False):
+def _redo_lane(wk, h, b):
+    """Lane b's RK4 step again with libm cos/sin for its heading increments (the rare lanes
+    with an increment beyond SMALL_ANGLE); a function of its own, compiled once, so that the
+    block kernels hold one inlined copy of the RK4 lane, not two (cold start, issue 23)."""
+    out, _big = _rk4_block_lane(wk, h, b, True)
+    _store9(wk, K_OUT, b, out)
+
+
+@njit(cache=True, error_model="numpy")
+def advance_block(wk, dt, nsub, m, fast):
     """Advance the m lanes of a block by dt from their times (row K_T0) in nsub RK4
     substeps, the forces (rows K_F..) held constant; the state rows change in place.
 
-    The ten time-dependent tones are evaluated once at t0 and then rotated by half
+    The caller fills the tones' sines and cosines at t0 (rows K_S.., K_C..) and cos/sin of
+    both headings (rows K_C0, K_S0, K_CT, K_STT), from a cache or by :func:`_tone_values` and
+    :func:`_heading_values`. The ten time-dependent tones are then rotated by half
     substeps (angle addition with small-angle cos/sin), so each stage time is exact to
-    rounding. ``pre``: the caller has filled the tones' sines and cosines at t0 (rows K_S..,
-    K_C..) and cos/sin of both headings (rows K_C0, K_S0, K_CT, K_STT), e.g. from a cache.
+    rounding. ``fast``: the headings of later substeps by :func:`fast_sincos` instead of
+    libm. (Call it with runtime values, not literals, for ``m`` and ``fast``: numba compiles
+    a specialisation per literal argument.)
     """
     h = dt / nsub
     hh = 0.5 * h
-    if not pre:
-        _tone_values(wk, m, fast)
     _rotation_factors(wk, hh, m)
     for b in range(m):
         _forcing_lane(wk, K_S, K_F1, b)
@@ -606,7 +647,7 @@ def advance_block(wk, dt, nsub, m, pre, fast=False):
             row = K_FM if half == 0 else K_F1
             for b in range(m):
                 _forcing_lane(wk, K_S, row, b)
-        if not (pre and sub == 0):  # cos/sin of both headings at the substep's start
+        if sub > 0:  # cos/sin of both headings at the substep's start
             _heading_values(wk, m, fast)
         nbig = 0
         for b in range(m):
@@ -617,8 +658,7 @@ def advance_block(wk, dt, nsub, m, pre, fast=False):
         if nbig:  # lanes with a large heading increment: redo them with libm cos/sin
             for b in range(m):
                 if wk[_ix(K_BIG, b)] != 0.0:
-                    out, _big = _rk4_block_lane(wk, h, b, True)
-                    _store9(wk, K_OUT, b, out)
+                    _redo_lane(wk, h, b)
         for c in range(9):
             for b in range(m):
                 wk[_ix(K_ST + c, b)] = wk[_ix(K_OUT + c, b)]
@@ -630,7 +670,7 @@ def integrate(state, p, cfg, t0, forces, fast=False):
 
     The bare physics kernel (follower and target, the tones only), without link,
     observation or reward: what the speed benchmark compares the env against. ``fast``:
-    the sin/cos by :func:`fast_sincos` (fast_math) instead of libm.
+    the sin/cos by :func:`fast_sincos` (the envs' ``sincos="simd"``) instead of libm.
     """
     n = state.shape[0]
     nsub = int(cfg[C_NSUB])
@@ -645,7 +685,9 @@ def integrate(state, p, cfg, t0, forces, fast=False):
             wk[_ix(K_F + 1, b)] = forces[a + b, 1]
             wk[_ix(K_F + 2, b)] = forces[a + b, 2]
             wk[_ix(K_T0, b)] = t0[a + b]
-        advance_block(wk, dt, nsub, m, False, fast)
+        _tone_values(wk, m, fast)
+        _heading_values(wk, m, fast)
+        advance_block(wk, dt, nsub, m, fast)
         for b in range(m):
             for c in range(9):
                 state[a + b, c] = wk[_ix(K_ST + c, b)]
@@ -1036,12 +1078,14 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
             proc[i, R_NEXT] = -W
             proc[i, R_LAST_SEND] = -W
             link_tick(state, proc, queue, rs, p, cfg, i, -W)
-            gather_block(state, p, i, 1, wk[b:])  # lane b (rows keep their BLOCK stride)
+            _gather_lane(state, p, i, wk, b)
         for step in range(-W, 0):
             for b in range(m):
                 _load_random_forcing(proc, idx[n0 + b], wk, b)
                 wk[_ix(K_T0, b)] = step * dt
-            advance_block(wk, dt, nsub, m, False)
+            _tone_values(wk, m, False)  # the warm-up's sin/cos: libm
+            _heading_values(wk, m, False)
+            advance_block(wk, dt, nsub, m, _opaque(False))
             for b in range(m):
                 i = idx[n0 + b]
                 for c in range(9):
@@ -1096,8 +1140,8 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stag
     Block by block: actions and thrusters per env, the RK4 step for the block's envs at
     once (:func:`advance_block`), per env the random processes, the new step's libm values
     for the block at once (:func:`refresh_trig_block`), then per env the link, the
-    observation, the reward and termination. ``cfg[C_FAST]`` = 1 (fast_math) computes the
-    step's sin/cos by :func:`fast_sincos`.
+    observation, the reward and termination. ``cfg[C_FAST]`` = 1 (``sincos="simd"``, the
+    envs' default) computes the step's sin/cos by :func:`fast_sincos`, 0 by libm.
     """
     dt = cfg[C_DT]
     nsub = int(cfg[C_NSUB])
@@ -1128,7 +1172,7 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stag
             wk[_ix(K_S0, b)] = proc[i, R_PSS]
             wk[_ix(K_CT, b)] = proc[i, R_PTC]
             wk[_ix(K_STT, b)] = proc[i, R_PTS]
-        advance_block(wk, dt, nsub, m, True, fast)
+        advance_block(wk, dt, nsub, m, fast)
         for b in range(m):
             i = a + b
             for c in range(9):

@@ -12,7 +12,7 @@ from gymnasium import spaces
 from auv_follow_env import dynamics as dyn
 from auv_follow_env.metrics import tracking_metrics
 from auv_follow_env.params import TaskSpec
-from auv_follow_env.sim import BatchSim, check_fast_math
+from auv_follow_env.sim import BatchSim, check_sincos
 from auv_follow_env.tiers import make_env_config, tier_table_markdown
 
 __all__ = ["AUVFollowEnv", "check_action"]
@@ -139,15 +139,19 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
     ``init_offset_m``, ``max_distance_m``, ``effort_weight``, ``p_d``, ``psi_d``,
     ``steady_start_s``; see :class:`~auv_follow_env.params.EnvConfig`.
 
-    ``fast_math`` (default ``False``, on every id): compute the sin/cos of each step (the ten
-    tones, both headings at every substep and the observation's relative heading: all 15
-    sin/cos pairs of a v0 step; v1's random draws keep libm) with a branch-free polynomial
-    (:func:`~auv_follow_env.dynamics.fast_sincos`, within 1 ULP) in SIMD loops instead of
-    glibc's scalar libm calls. Faster (results/bench_vector.md), but not bit-identical to the
-    default: about 3 % of the values differ in their last bit, so trajectories differ from
-    the default's by rounding-level amounts (tests/test_fast_math.py bounds them). The
-    default is what the frozen v0 results, the tiers' published scores and the leaderboard
-    use; use ``fast_math`` for throughput (sweeps, training), not for scores you publish.
+    ``sincos`` (on every id): how each step's sin/cos are computed (the ten tones, both headings
+    at every substep and the observation's relative heading: all 15 sin/cos pairs of a v0 step;
+    v1's random draws, the reset's warm-up and the rare heading increments beyond 0.25 rad keep
+    libm either way). ``"simd"`` (the default since issue 23): a branch-free polynomial
+    (:func:`~auv_follow_env.dynamics.fast_sincos`, within 1 ULP) in SIMD loops, several times
+    faster than glibc's scalar calls (results/bench_vector.md). ``"libm"``: glibc's sin/cos, the
+    path the v0 golden arrays (tests/data/frozen_v0.npz) were recorded with and the default until
+    issue 23. The two differ in the last bit of about 3 % of the values, so trajectories differ
+    by rounding-level amounts (over the v0 golden set at most 1.8e-15 m in the follower's pose,
+    observations identical; tests/test_fast_math.py and tests/test_frozen_v0.py bound them). The
+    frozen v0 contract is a tolerance (1e-9 relative), not bit identity, which never held across
+    hosts anyway; determinism within one host is exact either way. ``fast_math`` is the former
+    name (``True`` = ``"simd"``, ``False`` = ``"libm"``).
 
     ## v1: the acoustic link (``AUVFollow-Easy-v1`` ... ``-Extreme-v1``, ``AUVFollow-v1``)
 
@@ -205,8 +209,8 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def __init__(self, scenario: str = "S4", disturbance: str | None = None,
                  render_mode: str | None = None, *, version: str = "v0", tier: str | None = None,
-                 fast_math: bool = False, **overrides: Any) -> None:
-        fast_math = check_fast_math(fast_math)
+                 sincos: str | None = None, fast_math: bool | None = None, **overrides: Any) -> None:
+        sincos = check_sincos(sincos, fast_math)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r} is unknown: valid modes are "
                              f"{self.metadata['render_modes']} or None")
@@ -216,9 +220,11 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.config.dt))}
         self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
         self.observation_space = spaces.Box(-np.inf, np.inf, (self.task_spec.obs_dim,), np.float32)
-        self._sim = BatchSim(self.config, 1, fast_math, packed=True)
-        #: whether the step's sin/cos are the SIMD polynomial (``fast_math=True``) instead of libm
-        self.fast_math = fast_math
+        self._sim = BatchSim(self.config, 1, sincos, packed=True)
+        #: how the step's sin/cos are computed: "simd" (default) or "libm" (the ``sincos`` keyword)
+        self.sincos = sincos
+        #: former name: ``sincos == "simd"``
+        self.fast_math = sincos == "simd"
         self._step_one, self._buf = self._sim.step_one_call()
         # views of the sim's arrays, copied into each step's output
         self._obs0 = self._sim.obs[0]

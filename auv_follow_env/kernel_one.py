@@ -11,7 +11,9 @@ a second dispatcher of the same Python function) whose block functions ``advance
 ``gather_block`` are called with the lane count as the literal 1, so numba compiles them for a
 block of one lane, where every loop over lanes is a single iteration known at compile time.
 Same operations in the same order: results are bit-identical to the vector env's
-(tests/test_kernel_one.py compares every array after every step).
+(tests/test_kernel_one.py compares every array after every step). :func:`reset_one` is
+``reset_kernel``'s code in the same way, sharing the one-lane ``advance_block`` with the step,
+so a single env compiles one specialisation of it (cold start, issue 23).
 
 Buffer layout (float64 slots): a header (queue capacity, observation length, history length and
 offset), then cfg, state, k (int64), rs (uint64), proc, params, truth, rew, term (bool), obs
@@ -31,7 +33,7 @@ from numba.extending import intrinsic
 
 from auv_follow_env import dynamics as dyn
 
-__all__ = ["packed_arrays", "step_one"]
+__all__ = ["packed_arrays", "step_one", "reset_one"]
 
 _NC, _NR, _NP, _NT, _NQ = dyn.NC, dyn.NR, dyn.NP, dyn.NT, dyn.NQ
 _OBS_SLOTS = 10  # float64 slots for the float32 observation (up to 20 values)
@@ -114,13 +116,13 @@ def _views(buf):
 
 
 @njit(inline="always")
-def _advance_one(wk, dt, nsub, m, pre, fast=False):
+def _advance_one(wk, dt, nsub, m, fast):
     """:func:`~auv_follow_env.dynamics.advance_block` of a one-lane block, with the lane count a
     compile-time constant (numba compiles a specialisation for the literal 1, where every loop
-    over lanes is one iteration known at compile time)."""
+    over lanes is one iteration known at compile time; the single env's reset and step share it)."""
     if m != 1:
         raise AssertionError("kernel_one: a block of one env expected")
-    dyn.advance_block(wk, dt, nsub, 1, pre, fast)
+    dyn.advance_block(wk, dt, nsub, 1, fast)
 
 
 @njit(inline="always")
@@ -145,6 +147,8 @@ def _rebound(disp, **subs):
 
 #: dynamics.step_range, the same code, calling the one-lane block functions
 _step_range_one = _rebound(dyn.step_range, advance_block=_advance_one, gather_block=_gather_one)
+#: dynamics.reset_kernel, the same code, with the one-lane RK4 block (of one env only)
+_reset_kernel_one = _rebound(dyn.reset_kernel, advance_block=_advance_one)
 
 
 def _build():
@@ -171,7 +175,19 @@ def _build():
                         0, 1)
         return -1, rew[0], term[0], k[0], truth[0, dyn.T_ERR]
 
-    return njit(cache=True)(step_one)
+    def reset_one(buf, seed, direction):
+        """A new episode of the env packed in ``buf`` (its params row must be set):
+        :func:`~auv_follow_env.dynamics.reset_kernel` for one env, seeding its generator with
+        ``seed`` and the Gauss-Markov current's direction ``direction`` [rad]."""
+        if len(dynamics_hash) == 0:  # (never: as in step_one)
+            return
+        state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term = _views(buf)
+        idx = np.zeros(1, dtype=np.int64)
+        seeds = np.full(1, seed, dtype=np.int64)
+        directions = np.full(1, direction)
+        _reset_kernel_one(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs, truth)
+
+    return njit(cache=True)(step_one), njit(cache=True)(reset_one)
 
 
-step_one = _build()
+step_one, reset_one = _build()

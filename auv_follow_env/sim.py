@@ -15,12 +15,12 @@ import math
 import numpy as np
 
 from auv_follow_env import dynamics as dyn
-from auv_follow_env.kernel_one import packed_arrays, step_one
+from auv_follow_env.kernel_one import packed_arrays, reset_one, step_one
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1
 from auv_follow_env.params import LATENCY_MODELS, RANGEABLE, Condition, EnvConfig, VehicleParams
 
 __all__ = ["BatchSim", "param_row", "sample_params", "params_from_uniforms", "sample_params_v1", "link_row",
-           "config_vector", "queue_capacity", "check_fast_math"]
+           "config_vector", "queue_capacity", "SINCOS", "check_sincos"]
 
 TWO_PI = 2.0 * math.pi
 #: range of the current's period [s] (ours: "slowly varying", tens of seconds)
@@ -217,11 +217,33 @@ def config_vector(config: EnvConfig) -> np.ndarray:
     return c
 
 
-def check_fast_math(fast_math: object) -> bool:
-    """``fast_math`` as a bool, or a ValueError naming it."""
+#: how the kernels compute the step's sin/cos (the ``sincos`` keyword of the envs): "simd" (the
+#: default since issue 23: :func:`~auv_follow_env.dynamics.fast_sincos` in SIMD loops, within 1 ULP)
+#: or "libm" (glibc's scalar calls: the path the v0 golden arrays were recorded with)
+SINCOS = ("simd", "libm")
+
+
+def check_sincos(sincos: object = None, fast_math: object = None) -> str:
+    """The envs' ``sincos`` keyword resolved against its former name ``fast_math``, or a ValueError
+    naming the argument.
+
+    ``sincos``: None (the default, "simd"), "simd" or "libm". ``fast_math`` (former name, kept
+    working): None (not given), True (= "simd") or False (= "libm"); given with a ``sincos`` that
+    says otherwise, it is an error.
+    """
+    if sincos is not None and (not isinstance(sincos, str) or sincos not in SINCOS):
+        raise ValueError(f"sincos={sincos!r} is invalid: pass 'simd' (the default: SIMD polynomial sin/cos) or "
+                         f"'libm' (glibc's scalar sin/cos)")
+    if fast_math is None:
+        return "simd" if sincos is None else sincos
     if not isinstance(fast_math, (bool, np.bool_)):
-        raise ValueError(f"fast_math={fast_math!r} is invalid: pass True or False")
-    return bool(fast_math)
+        raise ValueError(f"fast_math={fast_math!r} is invalid: fast_math is the former name of sincos; pass True "
+                         f"(sincos='simd', the default) or False (sincos='libm'), or use sincos")
+    implied = "simd" if fast_math else "libm"
+    if sincos is not None and sincos != implied:
+        raise ValueError(f"fast_math={bool(fast_math)} contradicts sincos={sincos!r}: fast_math=True means "
+                         f"sincos='simd' and fast_math=False sincos='libm'; pass only sincos")
+    return implied
 
 
 def _aligned_zeros(rows: int, cols: int) -> np.ndarray:
@@ -235,16 +257,18 @@ def _aligned_zeros(rows: int, cols: int) -> np.ndarray:
 class BatchSim:
     """N independent AUVFollow episodes stepped together by the numba kernels.
 
-    ``fast_math=True`` computes the sin/cos of each step (the ten tones at the new step, both
-    headings) with :func:`~auv_follow_env.dynamics.fast_sincos` in SIMD loops instead of
-    glibc's libm: within 1 ULP, but not bit-identical to the default (see the env docs).
+    ``sincos="simd"`` (default) computes the sin/cos of each step (the ten tones at the new step,
+    both headings, the observation's relative heading) with
+    :func:`~auv_follow_env.dynamics.fast_sincos` in SIMD loops; ``"libm"`` with glibc's scalar
+    calls. Within 1 ULP of each other, not bit-identical (see the env docs).
     """
 
-    def __init__(self, config: EnvConfig, num_envs: int, fast_math: bool = False, *, packed: bool = False) -> None:
+    def __init__(self, config: EnvConfig, num_envs: int, sincos: str = "simd", *, packed: bool = False) -> None:
         self.config = config
         self.num_envs = num_envs
+        self.sincos = check_sincos(sincos)
         cfg = config_vector(config)
-        cfg[dyn.C_FAST] = 1.0 if fast_math else 0.0
+        cfg[dyn.C_FAST] = 1.0 if self.sincos == "simd" else 0.0
         self.v1 = config.version == "v1"
         q = int(cfg[dyn.C_Q])
         obs_dim = OBS_DIM_V1 if self.v1 else OBS_DIM
@@ -287,6 +311,12 @@ class BatchSim:
                 self.params[i], seeds[j], directions[j], self.conditions[i] = sample_params_v1(self.config, rng)
         elif len(idx):  # v0: each env's 12 uniforms from its own generator, then the rows at once
             self.params[idx] = params_from_uniforms(self.config, np.array([rng.random(12) for rng in rngs]))
+        if self.buf is not None:  # one packed env: the one-lane kernel (kernel_one)
+            if len(idx):
+                if idx[0] != 0:
+                    raise ValueError(f"env index {idx[0]} out of range for one env")
+                reset_one(self.buf, int(seeds[0]), float(directions[0]))
+            return
         dyn.reset_kernel(self.state, self.k, self.proc, self.queue, self.rs, self.params, self.cfg, idx, seeds,
                          directions, self.obs, self.truth)
 

@@ -22,7 +22,7 @@ from auv_follow_env import dynamics as dyn
 from auv_follow_env.env import check_action
 from auv_follow_env.metrics import METRIC_KEYS, history_metrics
 from auv_follow_env.params import TaskSpec
-from auv_follow_env.sim import BatchSim, check_fast_math
+from auv_follow_env.sim import BatchSim, check_sincos
 from auv_follow_env.tiers import make_env_config
 
 __all__ = ["AUVFollowVectorEnv"]
@@ -159,7 +159,8 @@ class AUVFollowVectorEnv(VectorEnv):
     ``GOMP_SPINCOUNT`` is set and the machine is busy then (:func:`omp_wait_policy`): idle
     OpenMP workers sleep rather than spin when no core is free, and spin briefly (libgomp's
     default) when one is.
-    ``fast_math`` (default ``False``): see :class:`~auv_follow_env.env.AUVFollowEnv`.
+    ``sincos`` (default ``"simd"``; ``"libm"`` for glibc's sin/cos) and its former name
+    ``fast_math``: see :class:`~auv_follow_env.env.AUVFollowEnv`.
     """
 
     metadata = {"render_modes": [], "render_fps": 20, "autoreset_mode": AutoresetMode.NEXT_STEP}
@@ -167,8 +168,8 @@ class AUVFollowVectorEnv(VectorEnv):
     def __init__(self, num_envs: int = 1, scenario: str = "S4", disturbance: str | None = None,
                  render_mode: str | None = None, max_episode_steps: int | None = None,
                  parallel: bool | None = None, *, version: str = "v0", tier: str | None = None,
-                 fast_math: bool = False, **overrides: Any) -> None:
-        fast_math = check_fast_math(fast_math)
+                 sincos: str | None = None, fast_math: bool | None = None, **overrides: Any) -> None:
+        sincos = check_sincos(sincos, fast_math)
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs={num_envs!r} is invalid: must be an integer >= 1")
         if render_mode is not None:
@@ -190,9 +191,11 @@ class AUVFollowVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
 
-        self._sim = BatchSim(self.config, self.num_envs, fast_math)
-        #: whether the step's sin/cos are the SIMD polynomial (``fast_math=True``) instead of libm
-        self.fast_math = fast_math
+        self._sim = BatchSim(self.config, self.num_envs, sincos)
+        #: how the step's sin/cos are computed: "simd" (default) or "libm" (the ``sincos`` keyword)
+        self.sincos = sincos
+        #: former name: ``sincos == "simd"``
+        self.fast_math = sincos == "simd"
         self._kernel, self._args = self._sim.step_call()
         if parallel is not None and not isinstance(parallel, (bool, np.bool_)):
             raise ValueError(f"parallel={parallel!r} is invalid: pass None (automatic), True or False")

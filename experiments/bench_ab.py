@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> str:
              f"Native vector env, random actions, {a.budget:g} s per measurement in a fresh process (numba cache "
              f"warm), baseline and this checkout alternating for {a.rounds} rounds, best kept; load average "
              f"before the run {load}, after it {', '.join(f'{x:.2f}' for x in os.getloadavg())}. Default settings "
-             f"(bit-identical libm; no fast_math).", "",
+             f"(each revision's default sin/cos: glibc's before issue 23, the SIMD polynomial since).", "",
              "| N | env | threads | baseline | this checkout | speed-up |", "|---|---|---|---|---|---|"]
     for n, env_id, par, b, t in rows:
         size = "single env (gym.make)" if n == 0 else n

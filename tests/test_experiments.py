@@ -263,7 +263,7 @@ def test_bench_vector_smoke(tmp_path):
 
     out = tmp_path / "bench_vector.md"
     text = bench_vector.main(["--budget", "0.01", "--sizes", "1", "32", "--repeats", "1", "--max-sync-envs", "32",
-                              "--policy-episode-s", "0.5", "--out", str(out)])
+                              "--policy-episode-s", "0.5", "--no-cold-start", "--out", str(out)])
     assert out.read_text() == text
     for needle in ("| 32 |", "fraction of the limit", "Profile of one batched step", "evaluate_batched with PROPOSED",
                    "bare kernel:"):

@@ -1,4 +1,5 @@
-"""fast_math: the SIMD sin/cos polynomial, and what it does (and does not do) to results.
+"""The SIMD sin/cos polynomial (``sincos="simd"``, the default since issue 23; formerly the opt-in
+``fast_math``) against glibc's (``sincos="libm"``), and what it does (and does not do) to results.
 
 The reference values are numpy's extended-precision (x87, 64-bit mantissa) sin/cos, which
 are independent of both the polynomial and glibc's double-precision sin/cos."""
@@ -82,7 +83,7 @@ def test_sincos_rows_fall_back_to_libm_for_huge_arguments():
 
 def _proposed_run(env_id: str, seeds: list[int], fast: bool):
     venv = gym.make_vec(env_id, num_envs=len(seeds), vectorization_mode="vector_entry_point", parallel=False,
-                        fast_math=fast)
+                        sincos="simd" if fast else "libm")
     spec = venv.unwrapped.task_spec
     obs, _ = venv.reset(seed=seeds)
     pol = make_controller("PROPOSED", spec)
@@ -100,22 +101,22 @@ def _proposed_run(env_id: str, seeds: list[int], fast: bool):
 
 @pytest.mark.parametrize("env_id,seeds", [("AUVFollow-S4-v0", list(range(6))),
                                           ("AUVFollow-Hard-v1", list(range(3_000_000, 3_000_006)))])
-def test_fast_math_trajectories_stay_within_1e_12_of_the_default(env_id, seeds):
+def test_simd_trajectories_stay_within_1e_12_of_libm(env_id, seeds):
     """Full 60 s PROPOSED episodes: the follower's pose differs by rounding only (the issue's
     bound is 1e-12; the float32 observations absorb last-bit differences of the state)."""
     exact, ends0 = _proposed_run(env_id, seeds, False)
     fast, ends1 = _proposed_run(env_id, seeds, True)
     np.testing.assert_array_equal(ends0, ends1)
     assert np.abs(fast - exact).max() < 1e-12
-    assert not np.array_equal(fast, exact)  # it is a different computation, not the default again
+    assert not np.array_equal(fast, exact)  # it is a different computation, not libm again
 
 
-def test_fast_math_parallel_equals_serial_bit_for_bit():
+def test_simd_parallel_equals_serial_bit_for_bit():
     n = 512
     acts = np.random.default_rng(3).uniform(-1, 1, (30, n, 3)).astype(np.float32)
     out = []
     for par in (False, True):
-        venv = AUVFollowVectorEnv(num_envs=n, parallel=par, fast_math=True)
+        venv = AUVFollowVectorEnv(num_envs=n, parallel=par)
         obs, _ = venv.reset(seed=11)
         for a in acts:
             obs, *_ = venv.step(a)
@@ -124,9 +125,10 @@ def test_fast_math_parallel_equals_serial_bit_for_bit():
     np.testing.assert_array_equal(out[0][1], out[1][1])
 
 
-def test_single_env_fast_math_equals_the_vector_env():
-    env = AUVFollowEnv(fast_math=True)
-    venv = AUVFollowVectorEnv(num_envs=1, fast_math=True)
+@pytest.mark.parametrize("sincos", ["simd", "libm"])
+def test_single_env_equals_the_vector_env(sincos):
+    env = AUVFollowEnv(sincos=sincos)
+    venv = AUVFollowVectorEnv(num_envs=1, sincos=sincos)
     o1, _ = env.reset(seed=4)
     o2, _ = venv.reset(seed=4)
     acts = np.random.default_rng(0).uniform(-1, 1, (50, 3)).astype(np.float32)
@@ -134,10 +136,38 @@ def test_single_env_fast_math_equals_the_vector_env():
         o1, *_ = env.step(a)
         o2, *_ = venv.step(a[None])
     np.testing.assert_array_equal(o1, o2[0])
-    assert env.fast_math and venv.fast_math
+    np.testing.assert_array_equal(env.unwrapped._sim.state, venv._sim.state)
+    assert env.sincos == venv.sincos == sincos
 
 
-@pytest.mark.parametrize("bad", [1, "yes", None, 0.0])
+def _poses(**kw) -> np.ndarray:
+    env = gym.make("AUVFollow-S4-v0", **kw)
+    env.reset(seed=2)
+    acts = np.random.default_rng(1).uniform(-1, 1, (600, 3)).astype(np.float32)  # (terminates at 888)
+    out = np.array([np.r_[info["follower_pose"], info["true_target"]] for info in (env.step(a)[4] for a in acts)])
+    env.close()
+    return out
+
+
+def test_default_is_simd_and_libm_is_the_named_opt_in():
+    assert AUVFollowVectorEnv(num_envs=2).sincos == "simd"
+    env = gym.make("AUVFollow-Hard-v1")
+    assert env.unwrapped.sincos == "simd" and env.unwrapped.fast_math is True
+    default, simd, libm = _poses(), _poses(sincos="simd"), _poses(sincos="libm")
+    np.testing.assert_array_equal(default, simd)
+    assert not np.array_equal(default, libm)
+    assert np.abs(default - libm).max() < 1e-12
+
+
+def test_former_keyword_fast_math_keeps_its_meaning():
+    """fast_math=True is sincos="simd" and fast_math=False is sincos="libm", bit for bit."""
+    np.testing.assert_array_equal(_poses(fast_math=True), _poses(sincos="simd"))
+    np.testing.assert_array_equal(_poses(fast_math=False), _poses(sincos="libm"))
+    assert gym.make("AUVFollow-S4-v0", fast_math=False).unwrapped.sincos == "libm"
+    assert AUVFollowVectorEnv(num_envs=2, fast_math=True, sincos="simd").sincos == "simd"  # consistent: fine
+
+
+@pytest.mark.parametrize("bad", [1, "yes", 0.0])
 def test_fast_math_must_be_a_bool(bad):
     with pytest.raises(ValueError, match="fast_math"):
         AUVFollowVectorEnv(num_envs=2, fast_math=bad)
@@ -145,6 +175,15 @@ def test_fast_math_must_be_a_bool(bad):
         gym.make("AUVFollow-S4-v0", fast_math=bad)
 
 
-def test_default_is_libm():
-    assert AUVFollowVectorEnv(num_envs=2).fast_math is False
-    assert gym.make("AUVFollow-Hard-v1").unwrapped.fast_math is False
+@pytest.mark.parametrize("bad", ["SIMD", "fast", 1, True])
+def test_sincos_must_be_simd_or_libm(bad):
+    for make in (lambda: AUVFollowVectorEnv(num_envs=2, sincos=bad), lambda: gym.make("AUVFollow-S4-v0", sincos=bad)):
+        with pytest.raises(ValueError, match=r"sincos=.*'simd'.*'libm'"):
+            make()
+
+
+def test_fast_math_contradicting_sincos_is_refused():
+    with pytest.raises(ValueError, match=r"fast_math=True contradicts sincos='libm'"):
+        gym.make("AUVFollow-S4-v0", fast_math=True, sincos="libm")
+    with pytest.raises(ValueError, match=r"fast_math=False contradicts sincos='simd'"):
+        AUVFollowVectorEnv(num_envs=2, fast_math=False, sincos="simd")

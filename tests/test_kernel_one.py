@@ -1,6 +1,6 @@
 """The single env's kernel (kernel_one.step_one on a packed one-env sim) against the batched
 step_kernel, bit for bit: every array of the sim after every step (state, link queue, random
-generator, caches, ...), over S1-S4 and the v1 tiers, fast_math on and off, long episodes with
+generator, caches, ...), over S1-S4 and the v1 tiers, sin/cos by SIMD (default) and libm, long episodes with
 terminations and resets; and the env (packed path) against the vector env (step_kernel)."""
 
 from __future__ import annotations
@@ -27,7 +27,8 @@ CONFIGS = ([(f"S{i}", {}) for i in range(1, 5)]
 
 def _pair(scenario: str, kw: dict, fast: bool) -> tuple[BatchSim, BatchSim]:
     config = make_env_config(scenario, **kw)
-    return BatchSim(config, 1, fast), BatchSim(config, 1, fast, packed=True)
+    sincos = "simd" if fast else "libm"
+    return BatchSim(config, 1, sincos), BatchSim(config, 1, sincos, packed=True)
 
 
 def _assert_same(a: BatchSim, b: BatchSim, where: str) -> None:
@@ -62,7 +63,7 @@ def test_packed_sim_has_the_kernel_types():
         a.step_one_call()
 
 
-@pytest.mark.parametrize("fast", [False, True], ids=["libm", "fast_math"])
+@pytest.mark.parametrize("fast", [False, True], ids=["libm", "simd"])
 @pytest.mark.parametrize("scenario, kw", CONFIGS, ids=[kw.get("tier", "custom") if kw else s for s, kw in CONFIGS])
 def test_step_one_equals_step_kernel_bit_for_bit(scenario, kw, fast):
     rng = np.random.default_rng(sum(map(ord, scenario + str(kw))) + fast)
@@ -130,7 +131,7 @@ def _rollout(env: gym.Env, seed: int, actions: np.ndarray) -> list[tuple]:
 @pytest.mark.parametrize("env_id, kwargs", [
     ("AUVFollow-S4-v0", {"episode_s": 6.0, "steady_start_s": 2.0, "max_distance_m": 2.5}),
     ("AUVFollow-Hard-v1", {"episode_s": 6.0, "steady_start_s": 2.0, "max_distance_m": 3.0}),
-    ("AUVFollow-Extreme-v1", {"episode_s": 6.0, "steady_start_s": 2.0, "fast_math": True}),
+    ("AUVFollow-Extreme-v1", {"episode_s": 6.0, "steady_start_s": 2.0, "sincos": "libm"}),
 ])
 def test_single_env_equals_the_vector_env(env_id, kwargs):
     n, steps = 3, 400

@@ -306,7 +306,7 @@ def test_bench_script_smoke(tmp_path):
     from experiments.bench_vector import main
 
     out = tmp_path / "bench.md"
-    text = main(["--budget", "0.01", "--sizes", "1", "3", "--no-parallel", "--out", str(out)])
+    text = main(["--budget", "0.01", "--sizes", "1", "3", "--no-parallel", "--no-cold-start", "--out", str(out)])
     assert out.read_text() == text
     assert "| 3 |" in text and "native / SyncVectorEnv" in text
 
