@@ -1,0 +1,135 @@
+"""Learning curves of the batched-PPO runs (``--algo bppo``) against the classical baselines
+and the floors on the same evaluation seeds (issue 22).
+
+    python -m experiments.learning_curves                    # results/benchmark/runs/bppo-* -> PNG + MD
+    python -m experiments.learning_curves --runs runs/my-run --out results/tmp/curves.png
+
+Each run's ``eval.csv`` holds, every million steps, the steady-state (t >= 10 s) true-reference
+error over its fixed evaluation seeds (training-range seeds, 500-531 by default). On the same
+seeds and tier this script scores the best classical controllers (PROPOSED_KF_DOB and MPC) and
+computes the information floor (agents/floors.py), and draws them as horizontal lines: a curve
+that flattens above them has converged to something worse; one still falling was stopped early.
+Writes the PNG and a Markdown table (final IQM per run, steps, wall-clock minutes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from experiments.outputs import output_path, write_report
+
+RUNS = Path("results/benchmark/runs")
+OUT = Path("results/benchmark/learning_curves_bppo.png")
+BASELINES = ("PROPOSED_KF_DOB", "MPC")
+
+
+def _iqm(x: np.ndarray) -> float:
+    x = np.sort(np.asarray(x, dtype=float))
+    n = len(x)
+    lo, hi = int(np.floor(0.25 * n)), int(np.ceil(0.75 * n))
+    return float(x[lo:hi].mean())
+
+
+def _runs(paths: list[Path]) -> list[Path]:
+    out = []
+    for p in paths:
+        if (p / "eval.csv").is_file():
+            out.append(p)
+        elif p.is_dir():
+            out += sorted(q for q in p.iterdir() if (q / "eval.csv").is_file() and q.name.startswith("bppo"))
+    return out
+
+
+def references(env_id: str, seeds: list[int]) -> dict[str, float]:
+    """IQM of the steady-state error of the best classical controllers and the information floor's
+    expected error on ``seeds`` (training-range seeds only)."""
+    import gymnasium as gym
+
+    from agents import floors
+    from auv_follow_env.tiers import check_training_seeds
+    from controllers import make_controller
+    from controllers.evaluation import evaluate_batched
+
+    check_training_seeds(seeds, name="evaluation seeds")
+    spec = gym.make(env_id).unwrapped.task_spec
+    df = evaluate_batched([make_controller(n, spec) for n in BASELINES], env_id, seeds=seeds, progress=False)
+    out = {n: _iqm(df.loc[df["policy"] == n, "true_steady_mean"].to_numpy()) for n in BASELINES}
+    tier = env_id.split("-")[1]
+    inf = floors.information_floor(tier, seeds)
+    out["information floor"] = _iqm(inf["expected_steady_mean"].dropna().to_numpy())
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--runs", type=Path, nargs="+", default=[RUNS], help="run directories or folders of runs "
+                   "(default %(default)s)")
+    p.add_argument("--out", type=Path, default=None, help=f"PNG output (default {OUT}; the .md beside it)")
+    args = p.parse_args(argv)
+    runs = _runs(args.runs)
+    if not runs:
+        print(f"--runs: no bppo run directory with an eval.csv under {[str(r) for r in args.runs]}", file=sys.stderr)
+        return 2
+    out = output_path(args, p, OUT)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    info = []
+    for r in runs:
+        cfg = yaml.safe_load((r / "config.yaml").read_text())
+        run = cfg.get("run", {})
+        ev = pd.read_csv(r / "eval.csv")
+        seeds = cfg.get("eval_seeds", [500, 531])
+        info.append({"run": r, "env": run.get("env_id"), "mode": run.get("mode"), "cfg": cfg, "eval": ev,
+                     "seeds": list(range(int(seeds[0]), int(seeds[-1]) + 1))})
+    envs = list(dict.fromkeys(i["env"] for i in info))
+    fig, axes = plt.subplots(1, len(envs), figsize=(6.0 * len(envs), 4.2), squeeze=False)
+    lines = ["# Learning curves of the batched-PPO runs", "",
+             f"`python -m experiments.learning_curves` ({__doc__.splitlines()[0]})", "",
+             "Steady-state true-reference error, IQM over each run's evaluation seeds (training range); the "
+             "references are scored on the same seeds.", "",
+             "| run | env | mode | observation | steps | wall clock [min] | first IQM [m] | final IQM [m] "
+             "| best classical on these seeds [m] | information floor [m] |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for ax, env in zip(axes[0], envs, strict=True):
+        mine = [i for i in info if i["env"] == env]
+        refs = references(env, mine[0]["seeds"])
+        best = min(refs[n] for n in BASELINES)
+        for i in mine:
+            ev = i["eval"]
+            y = ev["true_steady_iqm_m"].replace(np.inf, np.nan)
+            label = i["run"].name
+            ax.plot(ev["steps"] / 1e6, y, marker="o", ms=3, label=label)
+            cfg = i["cfg"]
+            lines.append(f"| {label} | {env} | {i['mode']} | {cfg.get('run', {}).get('observation', '-')} "
+                         f"| {int(cfg.get('steps_done', ev['steps'].iloc[-1])):,} "
+                         f"| {float(cfg.get('train_seconds', 0.0)) / 60:.0f} | {y.iloc[0]:.4f} | {y.iloc[-1]:.4f} "
+                         f"| {best:.4f} | {refs['information floor']:.4f} |")
+        styles = {"PROPOSED_KF_DOB": ("C1", "--"), "MPC": ("C3", "--"), "information floor": ("0.3", ":")}
+        for name, v in refs.items():
+            c, ls = styles[name]
+            ax.axhline(v, color=c, ls=ls, lw=1.2, label=f"{name} {v:.4f} m")
+        ax.set_yscale("log")
+        ax.set_xlabel("training env steps [millions]")
+        ax.set_ylabel("steady-state error, IQM over eval seeds [m]")
+        ax.set_title(env, fontsize=10)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    write_report(out.with_suffix(".md"), "\n".join(lines) + f"\n\n![curves]({out.name})\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
