@@ -169,8 +169,7 @@ def report(table: pd.DataFrame, perfect: pd.DataFrame, args: Args, command: str)
             sc = d["true_steady_mean"].where(~d["terminated"], 20.0)
             cells.append(_ci(sc))
         lines.append(f"| {pol} | " + " | ".join(cells) + " |")
-    lines += ["", "MPC is left out (`agents.floors.SLOW_CONTROLLERS`): it solves its envs one after another, "
-              "minutes per tier on this machine.", ""]
+    lines.append("")
     return "\n".join(lines)
 
 
