@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
                          f"| {int(cfg.get('steps_done', ev['steps'].iloc[-1])):,} "
                          f"| {float(cfg.get('train_seconds', 0.0)) / 60:.0f} | {y.iloc[0]:.4f} | {y.iloc[-1]:.4f} "
                          f"| {best:.4f} | {refs['information floor']:.4f} |")
-        styles = {"PROPOSED_KF_DOB": ("C1", "--"), "MPC": ("C3", "--"), "information floor": ("0.3", ":")}
+        styles = {"PROPOSED_KF_DOB": ("k", "--"), "MPC": ("k", "-."), "information floor": ("0.45", ":")}
         for name, v in refs.items():
             c, ls = styles[name]
             ax.axhline(v, color=c, ls=ls, lw=1.2, label=f"{name} {v:.4f} m")
