@@ -115,9 +115,11 @@ def markdown(s: pd.DataFrame, args: Args, seeds_by_env: dict[str, list[int]]) ->
            "steady-state mean against PROPOSED on the same seeds.", "",
            f"Paper's controllers (Table 1): {', '.join(c for c in CONTROLLERS)}. **Ours, not the paper's:**",
            "PROPOSED_KF (target Kalman filter instead of eqs. (13)-(17)), PROPOSED_KF_DOB (plus the inner-loop",
-           "disturbance observer), MPC (delay-aware nonlinear MPC on the nominal model over the same filter,",
-           "offset-free with the same observer). Their settings were chosen on seeds "
-           f"{TUNING_SEEDS[0]}-{TUNING_SEEDS[-1]} of S1-S4 only, never on the seeds below.", ""]
+           "disturbance observer), MPC (delay-aware MPC on the nominal model with the thrusters' lag and rate",
+           "limit in its model, over the same filter, offset-free with the same observer). Their settings were",
+           f"chosen on seeds {TUNING_SEEDS[0]}-{TUNING_SEEDS[-1]} of S1-S4; on the tiers the filter is OU0 with the "
+           "tier's published noise levels and K_p is chosen per tier on training seeds 500-599",
+           "(results/estimator_study.md); never on the seeds below.", ""]
     for env_id, g in s.groupby("env_id", sort=False):
         seeds = seeds_by_env[env_id]
         out += [f"## {env_id} (seeds {seeds[0]}-{seeds[-1]}, n = {len(seeds)})", "",
