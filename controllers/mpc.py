@@ -414,6 +414,40 @@ def _admm(L, q, Rb, lo, hi, x, z, y, rho, sigma, iters, relax):
                 x[i, a] = relax * xt[a] + (1.0 - relax) * x[i, a]
 
 
+def _reference_track(estimator: TargetEstimator, spec: TaskSpec, times: np.ndarray, h: float, valid: np.ndarray,
+                     x0: np.ndarray) -> np.ndarray:
+    """(N_env, len(times) - 2, 6): the reference point's pose (heading unwrapped near the
+    follower's) and its velocity by central differences of spacing ``h`` at the inner samples of
+    ``times`` (the filter's predicted target); envs without a fix hold their pose ``x0``."""
+    px, py, ps = estimator.trajectory(times, frame="odometry")
+    pdx, pdy = spec.p_d
+    c, s = np.cos(ps), np.sin(ps)
+    rx, ry = px + c * pdx - s * pdy, py + s * pdx + c * pdy
+    rpsi = ps + spec.psi_d  # reference heading near the follower's unwrapped heading
+    k = np.round((x0[:, 2] - rpsi[:, 1]) / (2 * math.pi))
+    rpsi = rpsi + 2 * math.pi * k[:, None]
+    vx, vy, vr = ((q[:, 2:] - q[:, :-2]) / (2 * h) for q in (rx, ry, rpsi))
+    ref = np.stack([rx[:, 1:-1], ry[:, 1:-1], rpsi[:, 1:-1], vx, vy, vr], axis=-1)
+    hold = ~valid
+    if hold.any():
+        ref[hold] = 0.0
+        ref[hold, :, 0] = x0[hold, 0, None]
+        ref[hold, :, 1] = x0[hold, 1, None]
+        ref[hold, :, 2] = x0[hold, 2, None]
+    return ref
+
+
+def _own_reference(estimator: TargetEstimator, spec: TaskSpec, observation) -> np.ndarray:
+    """The MPC's own reference point now (N, 3), relative to the follower; a peek at the filter."""
+    obs = np.atleast_2d(np.asarray(observation, dtype=np.float64))
+    est = estimator.step(obs, None, commit=False, with_cov=False)
+    pdx, pdy = spec.p_d
+    c, s = np.cos(est.rel_psi), np.sin(est.rel_psi)
+    ref = np.stack([est.rel_x + c * pdx - s * pdy, est.rel_y + s * pdx + c * pdy, est.rel_psi + spec.psi_d], axis=-1)
+    ref[~est.valid] = 0.0
+    return ref
+
+
 class MPCController(ScriptedPolicy):
     """Delay-aware MPC with the thrusters in its model (see the module docstring), batched:
     one linearisation and one ADMM solve for all N envs per control step.
@@ -495,33 +529,10 @@ class MPCController(ScriptedPolicy):
     # ------------------------------------------------------------------------------------
     def _references(self, valid: np.ndarray, x0: np.ndarray) -> np.ndarray:
         """(N_env, intervals, 6): reference point pose and velocity at the blocks' ends."""
-        px, py, ps = self.estimator.trajectory(self._times, frame="odometry")
-        pdx, pdy = self.spec.p_d
-        c, s = np.cos(ps), np.sin(ps)
-        rx, ry = px + c * pdx - s * pdy, py + s * pdx + c * pdy
-        rpsi = ps + self.spec.psi_d  # reference heading near the follower's unwrapped heading
-        k = np.round((x0[:, 2] - rpsi[:, 1]) / (2 * math.pi))
-        rpsi = rpsi + 2 * math.pi * k[:, None]
-        h = self._times[1]
-        vx, vy, vr = ((q[:, 2:] - q[:, :-2]) / (2 * h) for q in (rx, ry, rpsi))
-        ref = np.stack([rx[:, 1:-1], ry[:, 1:-1], rpsi[:, 1:-1], vx, vy, vr], axis=-1)
-        hold = ~valid
-        if hold.any():
-            ref[hold] = 0.0
-            ref[hold, :, 0] = x0[hold, 0, None]
-            ref[hold, :, 1] = x0[hold, 1, None]
-            ref[hold, :, 2] = x0[hold, 2, None]
-        return ref
+        return _reference_track(self.estimator, self.spec, self._times, self._times[1], valid, x0)
 
     def reference(self, observation) -> np.ndarray:
-        obs = np.atleast_2d(np.asarray(observation, dtype=np.float64))
-        est = self.estimator.step(obs, None, commit=False, with_cov=False)
-        pdx, pdy = self.spec.p_d
-        c, s = np.cos(est.rel_psi), np.sin(est.rel_psi)
-        ref = np.stack([est.rel_x + c * pdx - s * pdy, est.rel_y + s * pdx + c * pdy,
-                        est.rel_psi + self.spec.psi_d], axis=-1)
-        ref[~est.valid] = 0.0
-        return ref
+        return _own_reference(self.estimator, self.spec, observation)
 
     def _fresh(self, n: int, psi_f: np.ndarray) -> None:
         nv, nc = self._nv, self._A.shape[0]
@@ -789,34 +800,10 @@ class CasadiMPCController(ScriptedPolicy):
     # ------------------------------------------------------------------------------------
     def _references(self, valid: np.ndarray, x0: np.ndarray) -> np.ndarray:
         """(N_env, horizon, 6): reference point pose and velocity at the horizon's nodes."""
-        px, py, ps = self.estimator.trajectory(self._times, frame="odometry")
-        pdx, pdy = self.spec.p_d
-        c, s = np.cos(ps), np.sin(ps)
-        rx, ry = px + c * pdx - s * pdy, py + s * pdx + c * pdy
-        # reference heading near the follower's unwrapped heading
-        rpsi = ps + self.spec.psi_d
-        k = np.round((x0[:, 2] - rpsi[:, 1]) / (2 * math.pi))
-        rpsi = rpsi + 2 * math.pi * k[:, None]
-        h = self._h
-        vx, vy, vr = ((a[:, 2:] - a[:, :-2]) / (2 * h) for a in (rx, ry, rpsi))
-        ref = np.stack([rx[:, 1:-1], ry[:, 1:-1], rpsi[:, 1:-1], vx, vy, vr], axis=-1)
-        hold = ~valid
-        if hold.any():
-            ref[hold] = 0.0
-            ref[hold, :, 0] = x0[hold, 0, None]
-            ref[hold, :, 1] = x0[hold, 1, None]
-            ref[hold, :, 2] = x0[hold, 2, None]
-        return ref
+        return _reference_track(self.estimator, self.spec, self._times, self._h, valid, x0)
 
     def reference(self, observation) -> np.ndarray:
-        obs = np.atleast_2d(np.asarray(observation, dtype=np.float64))
-        est = self.estimator.step(obs, None, commit=False, with_cov=False)
-        pdx, pdy = self.spec.p_d
-        c, s = np.cos(est.rel_psi), np.sin(est.rel_psi)
-        ref = np.stack([est.rel_x + c * pdx - s * pdy, est.rel_y + s * pdx + c * pdy,
-                        est.rel_psi + self.spec.psi_d], axis=-1)
-        ref[~est.valid] = 0.0
-        return ref
+        return _own_reference(self.estimator, self.spec, observation)
 
     def forces(self, obs: np.ndarray, reset_mask: np.ndarray) -> np.ndarray:
         o = decode(obs)
