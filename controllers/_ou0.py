@@ -158,15 +158,21 @@ def _step_mean(x, k):
     x[4] = r0 * k[1, 3]
 
 
-@njit(cache=True)
-def _predict_cov(P, F, Fh, T, qu, qr, qub, Pout, tmp):
-    """Pout = F P F^T + Q(T), Q by Simpson's rule with F at 0 (identity), T/2 and T."""
+@njit(cache=True, inline="always")
+def _mat6(A, B, out):
+    """out = A B for 6x6 arrays (out must not alias A or B)."""
     for a in range(6):
         for b in range(6):
             acc = 0.0
             for k in range(6):
-                acc += F[a, k] * P[k, b]
-            tmp[a, b] = acc
+                acc += A[a, k] * B[k, b]
+            out[a, b] = acc
+
+
+@njit(cache=True)
+def _predict_cov(P, F, Fh, T, qu, qr, qub, Pout, tmp):
+    """Pout = F P F^T + Q(T), Q by Simpson's rule with F at 0 (identity), T/2 and T."""
+    _mat6(F, P, tmp)
     q = (qu, qr, qub)
     for a in range(6):
         for b in range(a, 6):
@@ -183,6 +189,14 @@ def _predict_cov(P, F, Fh, T, qu, qr, qub, Pout, tmp):
             v = acc + T / 6.0 * qq
             Pout[a, b] = v
             Pout[b, a] = v
+
+
+@njit(cache=True)
+def _span(x, P, T, tu, tr, gx, gw, qu, qr, qub, xm, F, xh, Fh, Pout, tmp):
+    """Mean (into xm) and covariance (into Pout, which may be P) of (x, P) after T seconds."""
+    _propagate(x, T, tu, tr, gx, gw, xm, F)
+    _propagate(x, 0.5 * T, tu, tr, gx, gw, xh, Fh)
+    _predict_cov(P, F, Fh, T, qu, qr, qub, Pout, tmp)
 
 
 @njit(cache=True)
@@ -236,12 +250,7 @@ def _update(x, P, z, var, Kb, S, tmp):
         IKH[a, a] = 1.0
         for i in range(5):
             IKH[a, i] -= Kb[a, i]
-    for a in range(6):
-        for b in range(6):
-            acc = 0.0
-            for k in range(6):
-                acc += IKH[a, k] * P[k, b]
-            tmp[a, b] = acc
+    _mat6(IKH, P, tmp)
     for a in range(6):
         for b in range(a, 6):
             acc = 0.0
@@ -333,9 +342,7 @@ def ou0_step(obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P,
             if init[i]:
                 if want_cov and not stale[i]:
                     qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
-                    _propagate(xp[i], dt, tu, tr, _GL4_X, _GL4_W, xm, F)
-                    _propagate(xp[i], 0.5 * dt, tu, tr, _GL4_X, _GL4_W, xh, Fh)
-                    _predict_cov(Pp[i], F, Fh, dt, qu, qr, cfg[C_QUB], Pp[i], tmp)
+                    _span(xp[i], Pp[i], dt, tu, tr, _GL4_X, _GL4_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, Pp[i], tmp)
                 else:
                     stale[i] = True
                 _step_mean(xp[i], kstep)
@@ -381,9 +388,7 @@ def ou0_step(obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P,
                 old[1] = xp[i, 1] + dlt[i, 1]
                 old[2] = xp[i, 2] + dlt[i, 2]
                 T = t_meas - t_fix[i]
-                _propagate(x[i], T, tu, tr, _GL16_X, _GL16_W, xm, F)
-                _propagate(x[i], 0.5 * T, tu, tr, _GL16_X, _GL16_W, xh, Fh)
-                _predict_cov(P[i], F, Fh, T, qu, qr, cfg[C_QUB], P[i], tmp)
+                _span(x[i], P[i], T, tu, tr, _GL16_X, _GL16_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, P[i], tmp)
                 for j in range(6):
                     x[i, j] = xm[j]
                 _update(x[i], P[i], z, var, Kb, S, tmp)
@@ -434,9 +439,7 @@ def ou0_step(obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P,
             if want_cov and stale[i]:  # the present covariance from the filter at t_fix
                 T = t_now[i] - t_fix[i]
                 qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
-                _propagate(x[i], T, tu, tr, _GL16_X, _GL16_W, xm, F)
-                _propagate(x[i], 0.5 * T, tu, tr, _GL16_X, _GL16_W, xh, Fh)
-                _predict_cov(P[i], F, Fh, T, qu, qr, cfg[C_QUB], Pp[i], tmp)
+                _span(x[i], P[i], T, tu, tr, _GL16_X, _GL16_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, Pp[i], tmp)
                 stale[i] = False
             if want_cov:
                 for a in range(6):
