@@ -15,11 +15,16 @@ minibatches of the whole rollout.
 (4-7 s), so the value of waiting for the next packet is inside the horizon (SB3's default
 0.98 covered 2.5 s). Observation and reward normalisation as SB3's ``VecNormalize``
 (running mean / variance; the reward divided by the running std of the discounted return).
-Gaussian policy with a state-independent log std; the mean layer starts at 0.01 x the usual
+``lr_schedule``: ``constant`` (the constructor's default, what the first committed runs used)
+or ``linear`` (the YAML default: decays to 0 at ``n_timesteps``, as CleanRL's ``anneal_lr``;
+the policy's std shrinks over training, and at a constant rate the late updates grew until
+the evaluation curves turned back up). Gaussian policy with a state-independent log std; the mean layer starts at 0.01 x the usual
 scale, so a residual agent starts at (almost) the base controller.
 
 **Options** in ``policy_kwargs``: ``net_arch`` (hidden sizes), ``activation`` (tanh/relu),
-``log_std_init``, ``recurrent`` (a GRU trunk of ``gru_size`` units shared by actor and
+``log_std_init``, ``linear_skip`` (the actor's mean adds a linear map of its input,
+initialised at zero: a near-linear law such as a PD on the estimated error is one layer
+away), ``recurrent`` (a GRU trunk of ``gru_size`` units shared by actor and
 critic, trained on whole rollout sequences per env with the state reset at episode
 starts), ``privileged_critic`` (asymmetric critic: the critic also sees the *true* present
 reference point relative to the follower, from the env's ``info["true_reference"]`` and
@@ -56,7 +61,9 @@ __all__ = ["BatchedPPO", "BatchedAgent", "train_bppo", "load_bppo_agent", "MODEL
 
 MODEL_FORMAT = "auv-follow/batched-ppo/v1"
 POLICY_DEFAULTS: dict[str, Any] = {"net_arch": [64, 64], "activation": "tanh", "log_std_init": -1.0,
-                                   "recurrent": False, "gru_size": 64, "privileged_critic": False}
+                                   "recurrent": False, "gru_size": 64, "privileged_critic": False,
+                                   "linear_skip": False}
+LR_SCHEDULES = ("constant", "linear")
 PRIV_DIM = 4
 CLIP_OBS = 10.0
 CLIP_REWARD = 10.0
@@ -71,7 +78,7 @@ class BatchedPPO:
                  gamma: float = 0.995, gae_lambda: float = 0.95, learning_rate: float = 3e-4,
                  clip_range: float = 0.2, ent_coef: float = 0.0, vf_coef: float = 0.5, max_grad_norm: float = 0.5,
                  target_kl: float | None = None, policy_kwargs: dict | None = None, torch_threads: int = 1,
-                 random_phase: bool = True, n_eval_seeds: int = 32) -> None:
+                 random_phase: bool = True, n_eval_seeds: int = 32, lr_schedule: str = "constant") -> None:
         self.__dict__.update({k: v for k, v in locals().items() if k != "self"})
 
 
@@ -89,6 +96,9 @@ def _policy_kwargs(pk: dict | None) -> dict[str, Any]:
     out["net_arch"] = list(arch)
     if out["activation"] not in ("tanh", "relu"):
         raise ValueError(f"policy_kwargs activation={out['activation']!r} is invalid: must be 'tanh' or 'relu'")
+    for key in ("recurrent", "privileged_critic", "linear_skip"):
+        if not isinstance(out[key], bool):
+            raise ValueError(f"policy_kwargs {key}={out[key]!r} is invalid: must be True or False")
     if not (isinstance(out["gru_size"], int) and out["gru_size"] > 0):
         raise ValueError(f"policy_kwargs gru_size={out['gru_size']!r} is invalid: must be a positive integer")
     return out
@@ -103,6 +113,9 @@ def check_bppo_hyperparams(hp: dict[str, Any]) -> None:
     k = hp.get("n_eval_seeds", 32)
     if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 10_000:
         raise ValueError(f"hyperparameter n_eval_seeds={k!r} is invalid: must be an integer in [1, 10000]")
+    sched = hp.get("lr_schedule", "constant")
+    if sched not in LR_SCHEDULES:
+        raise ValueError(f"hyperparameter lr_schedule={sched!r} is invalid: must be one of {list(LR_SCHEDULES)}")
     if hp.get("policy", "MlpPolicy") != "MlpPolicy":
         raise ValueError(f"hyperparameter policy={hp.get('policy')!r} is invalid for bppo: only 'MlpPolicy' "
                          "(use policy_kwargs recurrent=True for a GRU)")
@@ -140,6 +153,9 @@ def _build_net(obs_dim: int, pk: dict[str, Any]):
                 trunk = obs_dim + pk["gru_size"]
             self.actor = mlp(trunk, pk["net_arch"], 3, 0.01)
             self.critic = mlp(trunk + self.priv, pk["net_arch"], 1, 1.0)
+            self.skip = nn.Linear(trunk, 3, bias=False) if pk["linear_skip"] else None
+            if self.skip is not None:
+                nn.init.zeros_(self.skip.weight)
             self.log_std = nn.Parameter(torch.full((3,), float(pk["log_std_init"])))
 
         def initial_state(self, n: int):
@@ -154,7 +170,7 @@ def _build_net(obs_dim: int, pk: dict[str, Any]):
             return torch.cat([obs, h], dim=-1), h
 
         def heads(self, x, priv):
-            mean = self.actor(x)
+            mean = self.actor(x) if self.skip is None else self.actor(x) + self.skip(x)
             cin = torch.cat([x, priv], dim=-1) if self.priv else x
             return mean, self.critic(cin).squeeze(-1)
 
@@ -356,6 +372,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     D = env.obs_dim
     net = _build_net(D, pk)
     opt = torch.optim.Adam(net.parameters(), lr=float(hp["learning_rate"]), eps=1e-5)
+    lr0 = float(hp["learning_rate"])
     obs_rms, ret_rms = _RunningMeanStd((D,)), _RunningMeanStd(())
     start_steps = 0
     if cfg.resume_from is not None:
@@ -392,7 +409,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     eval_fields = ["steps", "train_seconds", "n_seeds", "true_steady_mean_m", "true_steady_iqm_m",
                    "true_full_mean_m", "return_mean", "terminated_frac"]
     prog_fields = ["steps", "train_seconds", "steps_per_s", "ep_return_mean", "ep_true_steady_mean_m", "episodes",
-                   "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "std_mean"]
+                   "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "std_mean", "learning_rate"]
     if not eval_csv.exists():
         with open(eval_csv, "w", newline="") as f:
             csv.writer(f).writerow(eval_fields)
@@ -515,6 +532,9 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                 last = np.where(buf_valid[t], last, 0.0).astype(np.float32)
                 adv[t] = last
             ret = adv + buf_val[:T]
+            if hp["lr_schedule"] == "linear":  # linear decay to 0 at total steps (CleanRL's anneal_lr)
+                for g in opt.param_groups:
+                    g["lr"] = lr0 * max(1.0 - (steps - T * n_envs) / total, 0.0)
             stats = _update(net, opt, hp, buf_obs, buf_priv, buf_first, buf_act, buf_logp, adv, ret, buf_valid, h0,
                             log_std_min)
             elapsed = time.perf_counter() - t0
@@ -523,7 +543,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                    "steps_per_s": round((steps - start_steps) / max(elapsed, 1e-9), 1),
                    "ep_return_mean": float(np.mean(ep_returns)) if ep_returns else float("nan"),
                    "ep_true_steady_mean_m": float(np.nanmean(ep_errors)) if ep_errors else float("nan"),
-                   "episodes": len(ep_returns), **stats}
+                   "episodes": len(ep_returns), **stats, "learning_rate": opt.param_groups[0]["lr"]}
             ep_returns.clear()
             ep_errors.clear()
             with open(prog_csv, "a", newline="") as f:

@@ -271,7 +271,8 @@ def test_readme_documents_the_estimator_block_field_by_field():
     assert [(int(i), n, u.strip()) for i, n, u in rows] == [(i, f.name, f.unit) for i, f in enumerate(ESTIMATOR_FIELDS)]
 
 
-@pytest.mark.parametrize("pk", ["dict(recurrent=True, gru_size=8)", "dict(privileged_critic=True)"])
+@pytest.mark.parametrize("pk", ["dict(recurrent=True, gru_size=8)", "dict(privileged_critic=True)",
+                                "dict(linear_skip=True)"])
 def test_bppo_options_train_load_and_act(tmp_path, pk):
     """The GRU and the asymmetric critic train on the batched path; the loaded agent acts on raw
     observations only (the privileged critic is not needed to act) and its GRU state restarts
@@ -287,3 +288,52 @@ def test_bppo_options_train_load_and_act(tmp_path, pk):
     assert agent.recurrent == ("recurrent" in pk)
     df = evaluate_agent(agent, [3, 3], progress=False)
     assert df["return"].iloc[0] == df["return"].iloc[1]
+
+
+def test_linear_lr_schedule_decays_to_zero_at_the_budget(tmp_path):
+    """lr_schedule=linear: the update that starts at step s uses lr0 * (1 - s / total). With 8 envs x
+    8 steps = 64 samples per update and a 256-step budget the four updates start at 0, 64, 128 and
+    192 steps: 1, 3/4, 1/2 and 1/4 of lr0 (worked out by hand)."""
+    import csv
+
+    from agents.cli import main
+
+    assert main(["train", "--algo", "bppo", "--env", "AUVFollow-Easy-v1", "--mode", "scratch", "--n-envs", "8",
+                 "--hp", "n_steps=8", "--hp", "batch_size=32", "--hp", "learning_rate=0.002",
+                 "--hp", "lr_schedule=linear", "--timesteps", "256", "--checkpoint-freq", "0", "--eval-freq", "0",
+                 "--no-final-eval", "--no-progress", "--no-tensorboard", "--out", str(tmp_path), "--run-name", "r"]) == 0
+    with open(tmp_path / "r" / "progress.csv") as f:
+        lrs = [float(r["learning_rate"]) for r in csv.DictReader(f)]
+    assert lrs == pytest.approx([0.002, 0.0015, 0.001, 0.0005], rel=1e-12)
+
+
+def test_bppo_rejects_an_unknown_lr_schedule_and_a_non_bool_option():
+    from agents.batched_ppo import check_bppo_hyperparams
+
+    with pytest.raises(ValueError, match=r"lr_schedule='cosine'.*constant.*linear"):
+        check_bppo_hyperparams({"lr_schedule": "cosine"})
+    with pytest.raises(ValueError, match=r"linear_skip=1 is invalid"):
+        check_bppo_hyperparams({"policy_kwargs": {"linear_skip": 1}})
+
+
+def test_linear_skip_starts_at_zero_and_adds_a_linear_map():
+    """The skip path starts at zero (same initial policy as without it) and adds W x to the mean."""
+    import torch
+
+    from agents.batched_ppo import _build_net, _policy_kwargs
+
+    x = torch.linspace(-1.0, 1.0, 5 * 7).reshape(5, 7)
+    torch.manual_seed(3)
+    plain = _build_net(7, _policy_kwargs({}))
+    torch.manual_seed(3)
+    skip = _build_net(7, _policy_kwargs({"linear_skip": True}))
+    m0, _ = plain.heads(x, None)
+    m1, _ = skip.heads(x, None)
+    assert torch.equal(m0, m1)
+    w = torch.zeros(3, 7)
+    w[0, 2], w[2, 6] = 2.0, -0.5
+    with torch.no_grad():
+        skip.skip.weight.copy_(w)
+    m2, _ = skip.heads(x, None)
+    expected = torch.stack([2.0 * x[:, 2], torch.zeros(5), -0.5 * x[:, 6]], dim=1)
+    assert torch.allclose(m2 - m1, expected, atol=1e-6)
