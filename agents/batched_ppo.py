@@ -18,7 +18,10 @@ minibatches of the whole rollout.
 ``lr_schedule``: ``constant`` (the constructor's default, what the first committed runs used)
 or ``linear`` (the YAML default: decays to 0 at ``n_timesteps``, as CleanRL's ``anneal_lr``;
 the policy's std shrinks over training, and at a constant rate the late updates grew until
-the evaluation curves turned back up). Gaussian policy with a state-independent log std; the mean layer starts at 0.01 x the usual
+the evaluation curves turned back up). ``obs_norm_window`` (samples, 0 = SB3's never-forgetting
+statistics): the observation statistics forget samples older than about that many; without it
+the early episodes' metre-sized errors set the scale of the error fields for the whole run (the
+Easy runs' est_ref_dx std was 1.08 m for a 0.02 m steady error). Gaussian policy with a state-independent log std; the mean layer starts at 0.01 x the usual
 scale, so a residual agent starts at (almost) the base controller.
 
 **Options** in ``policy_kwargs``: ``net_arch`` (hidden sizes), ``activation`` (tanh/relu),
@@ -78,7 +81,8 @@ class BatchedPPO:
                  gamma: float = 0.995, gae_lambda: float = 0.95, learning_rate: float = 3e-4,
                  clip_range: float = 0.2, ent_coef: float = 0.0, vf_coef: float = 0.5, max_grad_norm: float = 0.5,
                  target_kl: float | None = None, policy_kwargs: dict | None = None, torch_threads: int = 1,
-                 random_phase: bool = True, n_eval_seeds: int = 32, lr_schedule: str = "constant") -> None:
+                 random_phase: bool = True, n_eval_seeds: int = 32, lr_schedule: str = "constant",
+                 obs_norm_window: int = 0) -> None:
         self.__dict__.update({k: v for k, v in locals().items() if k != "self"})
 
 
@@ -116,6 +120,10 @@ def check_bppo_hyperparams(hp: dict[str, Any]) -> None:
     sched = hp.get("lr_schedule", "constant")
     if sched not in LR_SCHEDULES:
         raise ValueError(f"hyperparameter lr_schedule={sched!r} is invalid: must be one of {list(LR_SCHEDULES)}")
+    w = hp.get("obs_norm_window", 0)
+    if isinstance(w, bool) or not isinstance(w, int) or w < 0:
+        raise ValueError(f"hyperparameter obs_norm_window={w!r} is invalid: must be a whole number >= 0 "
+                         "(samples; 0 = never forget)")
     if hp.get("policy", "MlpPolicy") != "MlpPolicy":
         raise ValueError(f"hyperparameter policy={hp.get('policy')!r} is invalid for bppo: only 'MlpPolicy' "
                          "(use policy_kwargs recurrent=True for a GRU)")
@@ -178,12 +186,15 @@ def _build_net(obs_dim: int, pk: dict[str, Any]):
 
 
 class _RunningMeanStd:
-    """Running mean and variance (Chan et al.'s parallel update, as SB3's RunningMeanStd)."""
+    """Running mean and variance (Chan et al.'s parallel update, as SB3's RunningMeanStd).
+    ``window`` > 0 caps the count at that many samples, so old samples fade out (a new batch of
+    b samples then weighs b / (window + b)); 0 keeps every sample forever, as SB3."""
 
-    def __init__(self, shape: tuple[int, ...] = ()) -> None:
+    def __init__(self, shape: tuple[int, ...] = (), window: int = 0) -> None:
         self.mean = np.zeros(shape)
         self.var = np.ones(shape)
         self.count = 1e-4
+        self.window = int(window)
 
     def update(self, x: np.ndarray) -> None:
         x = np.asarray(x, dtype=np.float64)
@@ -193,7 +204,7 @@ class _RunningMeanStd:
         self.mean = self.mean + delta * b_count / tot
         m2 = self.var * self.count + b_var * b_count + delta ** 2 * self.count * b_count / tot
         self.var = m2 / tot
-        self.count = tot
+        self.count = min(tot, self.window) if self.window > 0 else tot
 
 
 def _privileged(info: dict[str, Any], n: int) -> np.ndarray:
@@ -373,7 +384,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     net = _build_net(D, pk)
     opt = torch.optim.Adam(net.parameters(), lr=float(hp["learning_rate"]), eps=1e-5)
     lr0 = float(hp["learning_rate"])
-    obs_rms, ret_rms = _RunningMeanStd((D,)), _RunningMeanStd(())
+    obs_rms, ret_rms = _RunningMeanStd((D,), window=int(hp["obs_norm_window"])), _RunningMeanStd(())
     start_steps = 0
     if cfg.resume_from is not None:
         data = _load_model_file(Path(cfg.resume_from))

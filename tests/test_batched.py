@@ -337,3 +337,26 @@ def test_linear_skip_starts_at_zero_and_adds_a_linear_map():
     m2, _ = skip.heads(x, None)
     expected = torch.stack([2.0 * x[:, 2], torch.zeros(5), -0.5 * x[:, 6]], dim=1)
     assert torch.allclose(m2 - m1, expected, atol=1e-6)
+
+
+def test_observation_statistics_with_a_window_forget_old_samples():
+    """window=100: after 100 zeros, each batch of 100 ones weighs 100 / (100 + 100) = 1/2:
+    mean 0 -> 1/2 -> 3/4; variance 1/4, then (1/4 * 100 + (1 - 1/2)^2 * 100 * 100 / 200) / 200
+    = 0.1875 (Chan's update with the count capped at 100; by hand). Without a window the
+    second batch of ones gives mean 2/3."""
+    from agents.batched_ppo import _RunningMeanStd
+
+    r = _RunningMeanStd((), window=100)
+    r.update(np.zeros(100))
+    r.update(np.ones(100))
+    assert r.mean == pytest.approx(0.5, abs=1e-9) and r.var == pytest.approx(0.25, abs=1e-6)
+    r.update(np.ones(100))
+    assert r.mean == pytest.approx(0.75, abs=1e-9) and r.var == pytest.approx(0.1875, abs=1e-6)
+    plain = _RunningMeanStd(())
+    for x in (np.zeros(100), np.ones(100), np.ones(100)):
+        plain.update(x)
+    assert plain.mean == pytest.approx(2 / 3, abs=1e-6)
+    from agents.batched_ppo import check_bppo_hyperparams
+
+    with pytest.raises(ValueError, match=r"obs_norm_window=-5 is invalid"):
+        check_bppo_hyperparams({"obs_norm_window": -5})
