@@ -21,7 +21,13 @@ the policy's std shrinks over training, and at a constant rate the late updates 
 the evaluation curves turned back up). ``obs_norm_window`` (samples, 0 = SB3's never-forgetting
 statistics): the observation statistics forget samples older than about that many; without it
 the early episodes' metre-sized errors set the scale of the error fields for the whole run (the
-Easy runs' est_ref_dx std was 1.08 m for a 0.02 m steady error). Gaussian policy with a state-independent log std; the mean layer starts at 0.01 x the usual
+Easy runs' est_ref_dx std was 1.08 m for a 0.02 m steady error). **Residuals: use ``gae_lambda=1``.** With lambda < 1 the advantage bootstraps from the critic's
+value of the *next* state, which the action moves; early on the critic is poor and its errors,
+not the return, set the gradient. A residual's true signal is weak (the base already tracks), so
+that bias wins: residual runs with lambda = 0.95 (or 0.9) drifted steadily worse on their own
+training return (paper's PROPOSED on Medium: 0.128 m -> 0.50 m in 3 M steps), with lambda = 1
+(Monte Carlo returns, gamma = 0.98) the same run did not (0.128 -> 0.102 m, noisily).
+Gaussian policy with a state-independent log std; the mean layer starts at 0.01 x the usual
 scale, so a residual agent starts at (almost) the base controller.
 
 **Options** in ``policy_kwargs``: ``net_arch`` (hidden sizes), ``activation`` (tanh/relu),

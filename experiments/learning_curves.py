@@ -66,6 +66,14 @@ def references(env_id: str, seeds: list[int]) -> dict[str, float]:
     return out
 
 
+def method_name(run_name: str) -> str:
+    """A run's method: its directory name without the training-seed suffix ``-s<k>``
+    (``bppo-Easy-scratch-priv-s2`` -> ``bppo-Easy-scratch-priv``)."""
+    import re
+
+    return re.sub(r"-s\d+$", "", run_name)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--runs", type=Path, nargs="+", default=[RUNS], help="run directories or folders of runs "
@@ -91,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
         info.append({"run": r, "env": run.get("env_id"), "mode": run.get("mode"), "cfg": cfg, "eval": ev,
                      "seeds": list(range(int(seeds[0]), int(seeds[-1]) + 1))})
     envs = list(dict.fromkeys(i["env"] for i in info))
-    fig, axes = plt.subplots(1, len(envs), figsize=(6.0 * len(envs), 4.2), squeeze=False)
+    fig, axes = plt.subplots(len(envs), 1, figsize=(10.0, 4.6 * len(envs)), squeeze=False)
+    axes = axes.T
     lines = ["# Learning curves of the batched-PPO runs", "",
              f"`python -m experiments.learning_curves` ({__doc__.splitlines()[0]})", "",
              "Steady-state true-reference error, IQM over each run's evaluation seeds (training range); the "
@@ -103,11 +112,28 @@ def main(argv: list[str] | None = None) -> int:
         mine = [i for i in info if i["env"] == env]
         refs = references(env, mine[0]["seeds"])
         best = min(refs[n] for n in BASELINES)
+        groups: dict[str, list[dict]] = {}
+        for i in mine:
+            groups.setdefault(method_name(i["run"].name), []).append(i)
+        for k, (method, members) in enumerate(groups.items()):
+            color = f"C{k % 10}"
+            curves = []
+            for i in members:
+                ev = i["eval"]
+                y = ev["true_steady_iqm_m"].replace(np.inf, np.nan)
+                ax.plot(ev["steps"] / 1e6, y, color=color, lw=0.8, alpha=0.45)
+                curves.append(pd.Series(y.to_numpy(), index=ev["steps"].to_numpy()))
+            if len(curves) > 1:  # the median over training seeds where they all have a point
+                both = pd.concat(curves, axis=1).dropna()
+                ax.plot(both.index / 1e6, both.median(axis=1), color=color, lw=2.0, marker="o", ms=3,
+                        label=f"{method} (median of {len(curves)} seeds)")
+            else:
+                ax.plot(curves[0].index / 1e6, curves[0].to_numpy(), color=color, lw=2.0, marker="o", ms=3,
+                        label=f"{method} (1 seed)")
         for i in mine:
             ev = i["eval"]
             y = ev["true_steady_iqm_m"].replace(np.inf, np.nan)
             label = i["run"].name
-            ax.plot(ev["steps"] / 1e6, y, marker="o", ms=3, label=label)
             cfg = i["cfg"]
             lines.append(f"| {label} | {env} | {i['mode']} | {cfg.get('run', {}).get('observation', '-')} "
                          f"| {int(cfg.get('steps_done', ev['steps'].iloc[-1])):,} "
@@ -122,10 +148,10 @@ def main(argv: list[str] | None = None) -> int:
         ax.set_ylabel("steady-state error, IQM over eval seeds [m]")
         ax.set_title(env, fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7, loc="upper right")
+        ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    fig.savefig(out, dpi=110, bbox_inches="tight")
     plt.close(fig)
     write_report(out.with_suffix(".md"), "\n".join(lines) + f"\n\n![curves]({out.name})\n")
     return 0
