@@ -21,7 +21,9 @@ the policy's std shrinks over training, and at a constant rate the late updates 
 the evaluation curves turned back up). ``obs_norm_window`` (samples, 0 = SB3's never-forgetting
 statistics): the observation statistics forget samples older than about that many; without it
 the early episodes' metre-sized errors set the scale of the error fields for the whole run (the
-Easy runs' est_ref_dx std was 1.08 m for a 0.02 m steady error). **Residuals: use ``gae_lambda=1``.** With lambda < 1 the advantage bootstraps from the critic's
+Easy runs' est_ref_dx std was 1.08 m for a 0.02 m steady error).
+
+**Residuals: use ``gae_lambda=1``.** With lambda < 1 the advantage bootstraps from the critic's
 value of the *next* state, which the action moves; early on the critic is poor and its errors,
 not the return, set the gradient. A residual's true signal is weak (the base already tracks), so
 that bias wins: residual runs with lambda = 0.95 (or 0.9) drifted steadily worse on their own

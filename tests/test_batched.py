@@ -301,7 +301,8 @@ def test_linear_lr_schedule_decays_to_zero_at_the_budget(tmp_path):
     assert main(["train", "--algo", "bppo", "--env", "AUVFollow-Easy-v1", "--mode", "scratch", "--n-envs", "8",
                  "--hp", "n_steps=8", "--hp", "batch_size=32", "--hp", "learning_rate=0.002",
                  "--hp", "lr_schedule=linear", "--timesteps", "256", "--checkpoint-freq", "0", "--eval-freq", "0",
-                 "--no-final-eval", "--no-progress", "--no-tensorboard", "--out", str(tmp_path), "--run-name", "r"]) == 0
+                 "--no-final-eval", "--no-progress", "--no-tensorboard", "--out", str(tmp_path),
+                 "--run-name", "r"]) == 0
     with open(tmp_path / "r" / "progress.csv") as f:
         lrs = [float(r["learning_rate"]) for r in csv.DictReader(f)]
     assert lrs == pytest.approx([0.002, 0.0015, 0.001, 0.0005], rel=1e-12)
