@@ -704,7 +704,8 @@ def paired_difference(episodes: pd.DataFrame, tier: str, policy: str, other: str
 
 def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_METRICS,
                 n_resamples: int = DEFAULT_RESAMPLES, seed: int = DEFAULT_BOOTSTRAP_SEED,
-                confidence: float = 0.95, progress: bool = False) -> pd.DataFrame:
+                confidence: float = 0.95, progress: bool = False,
+                bases: Mapping[str, str] | None = None) -> pd.DataFrame:
     """Aggregate a per-episode table into the leaderboard, one row per (tier, policy).
 
     Args:
@@ -713,6 +714,9 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
         metrics: error columns to aggregate (lower is better); the first ranks the classical
             baselines and is the one the probability of improvement is computed on.
         n_resamples, seed, confidence: bootstrap settings.
+        bases: residual methods' base controllers (``{policy: base policy}``, see
+            :func:`residual_bases`): adds ``base`` and the paired difference against it
+            (``paired_diff_base``, ``_lo``, ``_hi``) where the base was scored on the tier.
 
     Returns:
         columns tier, policy, kind, runs, episodes, for each metric ``<m>_iqm``,
@@ -771,6 +775,17 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
                 board.loc[i, ["paired_diff", "paired_diff_lo", "paired_diff_hi"]] = paired_difference(
                     ep_t, tier, board.at[i, "policy"], best, m0, n_resamples=n_resamples, seed=seed,
                     confidence=confidence)
+    board["base"] = ""
+    for c in ("paired_diff_base", "paired_diff_base_lo", "paired_diff_base_hi"):
+        board[c] = math.nan
+    for i in board.index:
+        base = (bases or {}).get(board.at[i, "policy"])
+        ep_t = episodes[episodes["tier"] == board.at[i, "tier"]]
+        if base and (ep_t["policy"] == base).any():
+            board.at[i, "base"] = base
+            board.loc[i, ["paired_diff_base", "paired_diff_base_lo", "paired_diff_base_hi"]] = paired_difference(
+                ep_t, board.at[i, "tier"], board.at[i, "policy"], base, m0, n_resamples=n_resamples, seed=seed,
+                confidence=confidence)
     if (board["kind"] == "reference").any():  # floors (agents/floors.py): their gap column
         from agents.floors import add_gap_closed
 
@@ -846,8 +861,8 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
              "P(better) = probability that an episode has a lower steady-state error than one of the tier's best "
              "classical baseline (rliable's probability of improvement, unpaired); paired diff = mean over the "
              "test seeds of (this policy's steady-state error - the best classical's on the same seed), runs "
-             "averaged per seed, with a 95 % bootstrap CI over seeds (negative: better); a terminated episode "
-             "scores the loss threshold.", ""]
+             "averaged per seed, with a 95 % bootstrap CI over seeds (negative: better); for a residual agent the "
+             "same against its own base controller; a terminated episode scores the loss threshold.", ""]
     m0 = metrics[0]
     for tier, sub in board.groupby("tier", sort=False):
         best = sub["best_classical"].iloc[0]
@@ -858,6 +873,8 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
             head += [f"{short} IQM", f"{short} mean"]
         head += ["vs best classical (IQM)", "paired diff vs best classical [m]", "P(better) vs best classical",
                  "terminated"]
+        has_base = "base" in sub and (sub["base"].fillna("") != "").any()
+        head += ["paired diff vs its base [m]"] if has_base else []
         gap = "gap_closed" in sub and sub["gap_closed"].notna().any()  # floors present (agents/floors.py)
         head += ["gap closed"] if gap else []
         lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -874,6 +891,9 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
                          _fmt_ci(pdiff, r["paired_diff_lo"], r["paired_diff_hi"]))
             cells.append(_fmt_ci(r["poi"], r["poi_lo"], r["poi_hi"], 2))
             cells.append(f"{100 * r['termination_rate']:.0f} %")
+            if has_base:
+                ci = _fmt_ci(r["paired_diff_base"], r["paired_diff_base_lo"], r["paired_diff_base_hi"])
+                cells.append(f"{ci} (base {_md(r['base'])})" if r.get("base") else "-")
             if gap:
                 cells.append("-" if not np.isfinite(r["gap_closed"]) else f"{r['gap_closed']:.2f}")
             lines.append("| " + " | ".join(cells) + " |")
@@ -1080,6 +1100,29 @@ def _first_line(exc: BaseException) -> str:
     return (text[0] if text else type(exc).__name__)[:200]
 
 
+def residual_bases(specs: Iterable[PolicySpec]) -> dict[str, str]:
+    """``{label: base controller}`` of the learned methods whose runs are residual agents on one
+    base controller (read from each run's ``config.yaml``); methods mixing bases are left out."""
+    import yaml
+
+    out: dict[str, str] = {}
+    for s in specs:
+        if s.kind != "learned" or not s.runs:
+            continue
+        found = set()
+        for r in s.runs:
+            try:
+                cfg = yaml.safe_load((Path(r) / "config.yaml").read_text()) or {}
+            except (OSError, yaml.YAMLError):
+                found.add(None)
+                continue
+            run = cfg.get("run", {}) if isinstance(cfg, dict) else {}
+            found.add(run.get("controller") if run.get("mode") == "residual" else None)
+        if len(found) == 1 and None not in found:
+            out[s.label] = str(found.pop())
+    return out
+
+
 def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: Iterable[str] = ("S4",), *,
               seeds: Mapping[str, Sequence[int]] | Sequence[int] | None = None, out_dir: str | Path | None = None,
               n_resamples: int = DEFAULT_RESAMPLES, bootstrap_seed: int = DEFAULT_BOOTSTRAP_SEED,
@@ -1136,7 +1179,8 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
 
         frames += [floor_episodes(t, seed_map[t], progress=progress) for t in tiers if t in V1_TIERS]
     episodes = pd.concat(frames, ignore_index=True)
-    board = leaderboard(episodes, n_resamples=n_resamples, seed=bootstrap_seed, progress=progress)
+    board = leaderboard(episodes, n_resamples=n_resamples, seed=bootstrap_seed, progress=progress,
+                        bases=residual_bases(specs))
     config = {"command": command, "tiers": {t: resolve_tier(t)[1] for t in tiers}, "seeds": seed_map,
               "policies": [dataclasses.asdict(s) for s in specs], "metrics": list(LEADERBOARD_METRICS),
               "n_resamples": n_resamples, "bootstrap_seed": bootstrap_seed, "confidence": 0.95,

@@ -48,3 +48,32 @@ def test_terminated_episode_scores_the_loss_threshold():
 def test_unknown_policy_is_refused():
     with pytest.raises(ValueError, match="policy='C'"):
         paired_difference(_episodes([(0.5, 0.6)]), "Hard", "C", "B")
+
+
+def test_a_residual_is_paired_with_its_own_base(tmp_path):
+    """B best classical, C a weaker classical that is A's base: A - C per seed is
+    0.5 - 0.9, 0.4 - 0.8, 0.3 - 0.7 = -0.4 each (by hand); the markdown names the base."""
+    from agents.benchmark import PolicySpec, leaderboard_markdown, residual_bases
+
+    ep = _episodes([(0.5, 0.6), (0.4, 0.5), (0.3, 0.4)])
+    ep = pd.concat([ep, pd.DataFrame([dict(tier="Hard", policy="C", kind="classical", run="", seed=s,
+                                           terminated=False, true_steady_mean=0.9 - 0.1 * s,
+                                           true_full_mean=0.9 - 0.1 * s) for s in range(3)])],
+                   ignore_index=True)
+    board = leaderboard(ep, n_resamples=200, bases={"A": "C"}).set_index("policy")
+    assert board.loc["A", "base"] == "C"
+    assert board.loc["A", ["paired_diff_base", "paired_diff_base_lo", "paired_diff_base_hi"]].tolist() == \
+        pytest.approx([-0.4, -0.4, -0.4])
+    assert board.loc["A", "paired_diff"] == pytest.approx(-0.1)  # against the best classical B
+    assert pd.isna(board.loc["B", "paired_diff_base"])
+    assert "-0.4000 [-0.4000, -0.4000] (base C)" in leaderboard_markdown(board.reset_index())
+    # the base is read from the runs' config.yaml; a method mixing bases (or not residual) has none
+    for name, mode, ctrl in (("r0", "residual", "PROPOSED"), ("r1", "residual", "PROPOSED"),
+                             ("r2", "residual", "PID"), ("r3", "scratch", None)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "config.yaml").write_text(f"run:\n  mode: {mode}\n  controller: {ctrl}\n")
+    specs = [PolicySpec("one", "learned", runs=(str(tmp_path / "r0"), str(tmp_path / "r1"))),
+             PolicySpec("mixed", "learned", runs=(str(tmp_path / "r0"), str(tmp_path / "r2"))),
+             PolicySpec("scratch", "learned", runs=(str(tmp_path / "r3"),)),
+             PolicySpec("PID", "classical", controller="PID")]
+    assert residual_bases(specs) == {"one": "PROPOSED"}
