@@ -145,20 +145,24 @@ def _eval_zoo(value: Any, key: str = "value") -> Any:
 
 
 def load_hyperparams(algo: str, env_id: str, path: str | Path | None = None,
-                     overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+                     overrides: dict[str, Any] | None = None, mode: str | None = None) -> dict[str, Any]:
     """Hyperparameters for ``algo`` on ``env_id`` from an rl-zoo3-format YAML file
     (``agents/hyperparams/<algo>.yml`` by default): the ``default`` section updated by the
-    env id's section, then by ``overrides``. Strings ``"dict(...)"`` are parsed (never evaluated)."""
+    ``residual`` section (if ``mode="residual"`` and the file has one), then by the env id's
+    section, then by ``overrides``. Strings ``"dict(...)"`` are parsed (never evaluated)."""
     _algo_class(algo)
     path = Path(path) if path is not None else HYPERPARAMS_DIR / f"{algo}.yml"
     if not path.is_file():
         raise FileNotFoundError(f"hyperparameter file {path} does not exist")
     with open(path) as f:
         table = yaml.safe_load(f) or {}
-    if not isinstance(table, dict) or not all(isinstance(table.get(k) or {}, dict) for k in ("default", env_id)):
+    if not isinstance(table, dict) or not all(isinstance(table.get(k) or {}, dict)
+                                              for k in ("default", "residual", env_id)):
         raise ValueError(f"hyperparameter file {path} is not in rl-zoo's format: expected a mapping of sections "
-                         "(default, <env id>) to mappings of hyperparameters")
+                         "(default, residual, <env id>) to mappings of hyperparameters")
     hp = dict(table.get("default") or {})
+    if mode == "residual":
+        hp.update(table.get("residual") or {})
     hp.update(table.get(env_id) or {})
     hp.update(overrides or {})
     return {k: _eval_zoo(v, k) for k, v in hp.items()}
@@ -700,7 +704,7 @@ def _plan(cfg: TrainConfig) -> _Plan:
     cfg.validate()
     cls = _algo_class(cfg.algo)
     try:
-        hp = load_hyperparams(cfg.algo, cfg.env_id, cfg.hyperparams_file, cfg.hyperparams)
+        hp = load_hyperparams(cfg.algo, cfg.env_id, cfg.hyperparams_file, cfg.hyperparams, mode=cfg.mode)
     except (yaml.YAMLError, SyntaxError, NameError, TypeError, ValueError) as exc:
         if isinstance(exc, ConfigError):
             raise

@@ -243,7 +243,7 @@ def test_bppo_run_directory_load_evaluate_and_resume(tmp_path):
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     assert cfg["steps_done"] == 256 and cfg["train_seconds"] > 0
     assert cfg["run"]["observation"] == "estimator" and cfg["run"]["history_len"] == 0  # v1 defaults
-    assert cfg["hyperparams"]["gamma"] == 0.995
+    assert cfg["hyperparams"]["gamma"] == 0.98 and cfg["hyperparams"]["gae_lambda"] == 1.0  # the residual section
     assert cfg["versions"]["git_commit"]
     assert (run / "checkpoints" / "model_128_steps.zip").is_file()
     assert (run / "checkpoints" / "model_vecnormalize_128_steps.json").is_file()
@@ -361,3 +361,17 @@ def test_observation_statistics_with_a_window_forget_old_samples():
 
     with pytest.raises(ValueError, match=r"obs_norm_window=-5 is invalid"):
         check_bppo_hyperparams({"obs_norm_window": -5})
+
+
+def test_the_residual_section_sits_between_default_and_the_env_section(tmp_path):
+    from agents.train import load_hyperparams
+
+    f = tmp_path / "bppo.yml"
+    f.write_text("default:\n  gamma: 0.9\n  n_epochs: 3\n  ent_coef: 0.1\nresidual:\n  gamma: 0.5\n  n_epochs: 4\n"
+                 "AUVFollow-Hard-v1:\n  n_epochs: 7\n")
+    scratch = load_hyperparams("bppo", "AUVFollow-Hard-v1", f, mode="scratch")
+    res = load_hyperparams("bppo", "AUVFollow-Hard-v1", f, {"ent_coef": 0.2}, mode="residual")
+    assert (scratch["gamma"], scratch["n_epochs"], scratch["ent_coef"]) == (0.9, 7, 0.1)
+    assert (res["gamma"], res["n_epochs"], res["ent_coef"]) == (0.5, 7, 0.2)
+    shipped = load_hyperparams("bppo", "AUVFollow-Medium-v1", mode="residual")
+    assert (shipped["gamma"], shipped["gae_lambda"]) == (0.98, 1.0)
