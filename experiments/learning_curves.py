@@ -66,6 +66,21 @@ def references(env_id: str, seeds: list[int]) -> dict[str, float]:
     return out
 
 
+def with_parent_curve(run_dir: Path, run: dict, ev: pd.DataFrame) -> pd.DataFrame:
+    """A resumed run's curve preceded by the run it was resumed from (``run.resume_from``: a
+    model in another run directory, looked up beside this one by name), so a fine-tune is drawn
+    from step 0; the rows of the parent before the resume point."""
+    src = run.get("resume_from")
+    if not src:
+        return ev
+    parent = run_dir.parent / Path(str(src)).parent.name
+    if Path(str(src)).parent.name == "checkpoints" or not (parent / "eval.csv").is_file():
+        return ev
+    before = pd.read_csv(parent / "eval.csv")
+    before = before[before["steps"] < ev["steps"].min()] if len(ev) else before
+    return pd.concat([before, ev], ignore_index=True)
+
+
 def method_name(run_name: str) -> str:
     """A run's method: its directory name without the training-seed suffix ``-s<k>``
     (``bppo-Easy-scratch-priv-s2`` -> ``bppo-Easy-scratch-priv``)."""
@@ -94,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in runs:
         cfg = yaml.safe_load((r / "config.yaml").read_text())
         run = cfg.get("run", {})
-        ev = pd.read_csv(r / "eval.csv")
+        ev = with_parent_curve(r, run, pd.read_csv(r / "eval.csv"))
         seeds = cfg.get("eval_seeds", [500, 531])
         info.append({"run": r, "env": run.get("env_id"), "mode": run.get("mode"), "cfg": cfg, "eval": ev,
                      "seeds": list(range(int(seeds[0]), int(seeds[-1]) + 1))})
