@@ -319,3 +319,20 @@ def test_bench_ab_refuses_an_unknown_baseline_and_bad_sizes(capsys):
     assert "no-such-revision-xyz" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         bench_ab.main(["--baseline", "HEAD", "--sizes", "-1"])
+
+
+def test_learning_curve_of_a_resumed_run_starts_with_its_parent(tmp_path):
+    from experiments.learning_curves import method_name, with_parent_curve
+
+    (tmp_path / "base-s0").mkdir()
+    pd.DataFrame({"steps": [0, 10, 20, 30], "true_steady_iqm_m": [4.0, 3.0, 2.0, 1.0]}).to_csv(
+        tmp_path / "base-s0" / "eval.csv", index=False)
+    ft = pd.DataFrame({"steps": [25, 35], "true_steady_iqm_m": [0.9, 0.8]})
+    run = {"resume_from": "/elsewhere/runs/base-s0/model.zip"}
+    got = with_parent_curve(tmp_path / "ft-s0", run, ft)
+    assert got["steps"].tolist() == [0, 10, 20, 25, 35]  # the parent's rows before the resume point
+    assert got["true_steady_iqm_m"].tolist() == [4.0, 3.0, 2.0, 0.9, 0.8]
+    assert with_parent_curve(tmp_path / "ft-s0", {}, ft) is ft
+    assert with_parent_curve(tmp_path / "ft-s0", {"resume_from": "/x/missing/model.zip"}, ft) is ft
+    assert method_name("bppo-Easy-scratch-priv-s12") == "bppo-Easy-scratch-priv"
+    assert method_name("bppo-Easy-s0-scratch") == "bppo-Easy-s0-scratch"
