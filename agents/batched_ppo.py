@@ -75,6 +75,7 @@ POLICY_DEFAULTS: dict[str, Any] = {"net_arch": [64, 64], "activation": "tanh", "
                                    "recurrent": False, "gru_size": 64, "privileged_critic": False,
                                    "linear_skip": False}
 LR_SCHEDULES = ("constant", "linear")
+TEACHER_LINKS = ("perfect", "real")
 PRIV_DIM = 4
 CLIP_OBS = 10.0
 CLIP_REWARD = 10.0
@@ -90,7 +91,8 @@ class BatchedPPO:
                  clip_range: float = 0.2, ent_coef: float = 0.0, vf_coef: float = 0.5, max_grad_norm: float = 0.5,
                  target_kl: float | None = None, policy_kwargs: dict | None = None, torch_threads: int = 1,
                  random_phase: bool = True, n_eval_seeds: int = 32, lr_schedule: str = "constant",
-                 obs_norm_window: int = 0) -> None:
+                 obs_norm_window: int = 0, teacher: str | None = None, teacher_link: str = "perfect",
+                 distill_steps: int = 0) -> None:
         self.__dict__.update({k: v for k, v in locals().items() if k != "self"})
 
 
@@ -132,9 +134,37 @@ def check_bppo_hyperparams(hp: dict[str, Any]) -> None:
     if isinstance(w, bool) or not isinstance(w, int) or w < 0:
         raise ValueError(f"hyperparameter obs_norm_window={w!r} is invalid: must be a whole number >= 0 "
                          "(samples; 0 = never forget)")
+    _check_teacher(hp)
     if hp.get("policy", "MlpPolicy") != "MlpPolicy":
         raise ValueError(f"hyperparameter policy={hp.get('policy')!r} is invalid for bppo: only 'MlpPolicy' "
                          "(use policy_kwargs recurrent=True for a GRU)")
+
+
+def _check_teacher(hp: dict[str, Any], mode: str | None = None, env_id: str | None = None) -> None:
+    """The distillation options (module docstring, "Distillation"); raises ValueError."""
+    from controllers import ALL_CONTROLLERS
+
+    teacher, link, n = hp.get("teacher"), hp.get("teacher_link", "perfect"), hp.get("distill_steps", 0)
+    if teacher is not None and teacher not in ALL_CONTROLLERS:
+        raise ValueError(f"hyperparameter teacher={teacher!r} is invalid: must be None or one of "
+                         f"{list(ALL_CONTROLLERS)}")
+    if link not in TEACHER_LINKS:
+        raise ValueError(f"hyperparameter teacher_link={link!r} is invalid: must be one of {list(TEACHER_LINKS)}")
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise ValueError(f"hyperparameter distill_steps={n!r} is invalid: must be a whole number >= 0 (env steps)")
+    if n > 0 and teacher is None:
+        raise ValueError(f"hyperparameter distill_steps={n} needs a teacher (hyperparameter teacher=<controller>)")
+    if teacher is None or n == 0:
+        return
+    if _policy_kwargs(hp.get("policy_kwargs"))["recurrent"]:
+        raise ValueError("hyperparameter teacher is not supported with policy_kwargs recurrent=True "
+                         "(distillation trains a feedforward student)")
+    if mode is not None and mode != "scratch":
+        raise ValueError(f"hyperparameter teacher={teacher!r} needs mode='scratch' (got mode={mode!r}): a residual "
+                         "agent already starts at its base")
+    if env_id is not None and link == "perfect" and not env_id.endswith("-v1"):
+        raise ValueError(f"hyperparameter teacher_link='perfect' needs a v1 env id (got {env_id!r}): the perfect "
+                         "link substitutes v1 observation fields; use teacher_link='real'")
 
 
 # --- the network ------------------------------------------------------------------------------
@@ -470,6 +500,8 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
         resolved["train_seconds"] = round(float(seconds), 2)
         write_yaml(run / "config.yaml", resolved)
 
+    teacher, distill_steps = _make_teacher(hp, env), int(hp["distill_steps"])
+    mix_rng = np.random.default_rng([cfg.seed, 0xD15])
     raw_obs = env.reset()
     priv = _privileged(env.info, n_envs) if net.priv else None
     first = np.ones(n_envs, dtype=bool)
@@ -503,6 +535,8 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
             buf_done = np.zeros((T, n_envs), dtype=bool)
             buf_valid = np.zeros((T, n_envs), dtype=bool)
             h0 = h.clone() if h is not None else None
+            distilling = teacher is not None and steps < distill_steps
+            buf_teach = np.zeros((T, n_envs, 3), dtype=np.float32) if distilling else None
             with torch.no_grad():
                 for t in range(T):
                     o = normalize(raw_obs, update=True)
@@ -518,7 +552,11 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                     a = mean + std * torch.randn_like(mean)
                     logp = (-0.5 * ((a - mean) / std) ** 2 - torch.log(std) - 0.5 * math.log(2 * math.pi)).sum(-1)
                     buf_act[t], buf_logp[t], buf_val[t] = a.numpy(), logp.numpy(), value.numpy()
-                    raw_obs, rew, term, trunc, info = env.step(a.numpy().astype(np.float64))
+                    act = a.numpy().astype(np.float64)
+                    if distilling:  # DAgger: label with the teacher, act with a mix that ends at the student
+                        act, buf_teach[t] = _teacher_step(teacher, env, first, mean.numpy(), steps, distill_steps,
+                                                          mix_rng)
+                    raw_obs, rew, term, trunc, info = env.step(act)
                     valid = ~info["prev_done"]
                     done = term | trunc
                     if norm_rew:
@@ -554,8 +592,11 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
             if hp["lr_schedule"] == "linear":  # linear decay to 0 at total steps (CleanRL's anneal_lr)
                 for g in opt.param_groups:
                     g["lr"] = lr0 * max(1.0 - (steps - T * n_envs) / total, 0.0)
-            stats = _update(net, opt, hp, buf_obs, buf_priv, buf_first, buf_act, buf_logp, adv, ret, buf_valid, h0,
-                            log_std_min)
+            if distilling:
+                stats = _distill_update(net, opt, hp, buf_obs, buf_priv, buf_teach, ret, buf_valid)
+            else:
+                stats = _update(net, opt, hp, buf_obs, buf_priv, buf_first, buf_act, buf_logp, adv, ret, buf_valid,
+                                h0, log_std_min)
             elapsed = time.perf_counter() - t0
             progress.update(steps)
             row = {"steps": steps, "train_seconds": round(elapsed, 2),
@@ -602,6 +643,93 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
               f"mean error to the true reference {row['true_steady_mean_m']:.4f} m (IQM "
               f"{row['true_steady_iqm_m']:.4f} m), mean return {row['return_mean']:.1f}", file=sys.stderr)
     return result, interrupted
+
+
+class _Teacher:
+    """A scripted controller labelling the student's states (module docstring, "Distillation")."""
+
+    def __init__(self, name: str, spec: Any, link: str) -> None:
+        from controllers import make_controller
+
+        self.controller = make_controller(name, spec)
+        self.link, self.spec = link, spec
+        self.limits = np.asarray(spec.force_limits, dtype=np.float64)
+        self.dob = getattr(self.controller, "disturbance_observer", None)
+
+    def label(self, raw: np.ndarray, info: dict[str, Any], start: np.ndarray) -> np.ndarray:
+        """The teacher's action (N, 3) in [-1, 1] for the env's present raw observations."""
+        seen = np.asarray(raw, dtype=np.float64)
+        if self.link == "perfect":
+            from agents.floors import perfect_link_observation
+
+            seen = perfect_link_observation(seen, info["true_target"], info["follower_pose"], self.spec.p_d)
+        action, _ = self.controller.predict(np.asarray(seen, dtype=np.float64), episode_start=start)
+        return np.asarray(action, dtype=np.float64)
+
+    def applied(self, action: np.ndarray) -> None:
+        """Tell the teacher's disturbance observer the force the env was commanded (it was not
+        necessarily the teacher's own)."""
+        if self.dob is not None:
+            self.dob.applied(np.clip(action, -1.0, 1.0) * self.limits)
+
+
+def _make_teacher(hp: dict[str, Any], env: Any) -> _Teacher | None:
+    if hp.get("teacher") is None or int(hp.get("distill_steps", 0)) == 0:
+        return None
+    return _Teacher(hp["teacher"], env.spec, hp.get("teacher_link", "perfect"))
+
+
+def mix_probability(steps: int, distill_steps: int) -> float:
+    """The probability that an env executes the teacher's action (not the student's) at a
+    rollout starting after ``steps`` env steps: 1 at the start, falling linearly to 0 at half of
+    ``distill_steps``, then 0 (DAgger's beta schedule: the student then acts alone and is
+    labelled on the states it reaches itself)."""
+    half = 0.5 * max(int(distill_steps), 1)
+    return float(min(max(1.0 - steps / half, 0.0), 1.0))
+
+
+def _teacher_step(teacher: _Teacher, env: Any, first: np.ndarray, student: np.ndarray, steps: int,
+                  distill_steps: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(executed action (N, 3) float64, teacher label (N, 3) float32) for one distillation step.
+    The student acts with its mean (no exploration noise)."""
+    label = teacher.label(env.raw, env.info, first)
+    use = rng.random(label.shape[0]) < mix_probability(steps, distill_steps)
+    act = np.where(use[:, None], label, np.clip(np.asarray(student, dtype=np.float64), -1.0, 1.0))
+    teacher.applied(act)
+    return act, label.astype(np.float32)
+
+
+def _distill_update(net: Any, opt: Any, hp: dict, obs, priv, teach, ret, valid) -> dict[str, float]:
+    """Epochs of regression over the rollout: the actor's mean onto the teacher's action (mean
+    squared error, reported as ``policy_loss``) plus ``vf_coef`` x the critic's error on the
+    rollout's returns (so PPO starts with a critic of the student's behaviour)."""
+    import torch
+
+    T, N = valid.shape
+    vf_coef, max_norm, batch = float(hp["vf_coef"]), float(hp["max_grad_norm"]), int(hp["batch_size"])
+    o_t, y_t, ret_t = torch.from_numpy(obs), torch.from_numpy(teach), torch.from_numpy(ret)
+    p_t = torch.from_numpy(priv) if priv is not None else None
+    idx_all = torch.nonzero(torch.from_numpy(valid).reshape(-1)).squeeze(-1)
+    logs: dict[str, list[float]] = {"policy_loss": [], "value_loss": []}
+    for _ in range(int(hp["n_epochs"])):
+        idx = idx_all[torch.randperm(idx_all.numel())]
+        for g in (idx[i:i + batch] for i in range(0, idx.numel(), batch)):
+            t_i, n_i = g // N, g % N
+            x, _ = net.trunk(o_t[t_i, n_i], None, None)
+            mean, value = net.heads(x, p_t[t_i, n_i] if p_t is not None else None)
+            bc = ((mean - y_t[t_i, n_i]) ** 2).sum(-1).mean()
+            vl = 0.5 * ((value - ret_t[t_i, n_i]) ** 2).mean()
+            loss = bc + vf_coef * vl
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(net.parameters(), max_norm)
+            opt.step()
+            logs["policy_loss"].append(bc.item())
+            logs["value_loss"].append(vl.item())
+    out = {k: float(np.mean(v)) if v else float("nan") for k, v in logs.items()}
+    out.update(entropy=float("nan"), approx_kl=float("nan"), clip_frac=float("nan"),
+               std_mean=float(torch.exp(net.log_std).mean().item()))
+    return out
 
 
 def _update(net: Any, opt: Any, hp: dict, obs, priv, first, act, logp_old, adv, ret, valid, h0,

@@ -712,10 +712,11 @@ def _plan(cfg: TrainConfig) -> _Plan:
         raise ConfigError(where, f"hyperparameters could not be read: {_one_line(exc)}") from None
     hp = check_hyperparams(cfg.algo, hp)
     if cfg.algo in BATCHED_ALGOS:
-        from agents.batched_ppo import check_bppo_hyperparams
+        from agents.batched_ppo import _check_teacher, check_bppo_hyperparams
 
         try:
             check_bppo_hyperparams(hp)
+            _check_teacher(hp, cfg.mode, cfg.env_id)
         except ValueError as exc:
             raise ConfigError("hyperparams", str(exc)) from None
     if cfg.total_timesteps is None and hp["n_timesteps"] is None:

@@ -375,3 +375,99 @@ def test_the_residual_section_sits_between_default_and_the_env_section(tmp_path)
     assert (res["gamma"], res["n_epochs"], res["ent_coef"]) == (0.5, 7, 0.2)
     shipped = load_hyperparams("bppo", "AUVFollow-Medium-v1", mode="residual")
     assert (shipped["gamma"], shipped["gae_lambda"]) == (0.98, 1.0)
+
+
+# --- distillation (teacher -> student) ----------------------------------------------------------
+
+def test_mix_probability_falls_linearly_to_zero_at_half_the_distillation():
+    from agents.batched_ppo import mix_probability
+
+    # by hand: 1 - steps / (distill / 2), floored at 0
+    assert [mix_probability(s, 1000) for s in (0, 125, 250, 500, 900)] == pytest.approx([1.0, 0.75, 0.5, 0.0, 0.0])
+
+
+def _teacher_env():
+    env = BatchedTrainEnv("AUVFollow-Easy-v1", 4, seed=7, builder={"mode": "scratch", "observation": "estimator"})
+    env.reset()
+    return env
+
+
+def test_teacher_acts_first_then_the_student_and_its_observer_hears_the_applied_force():
+    from agents.batched_ppo import _Teacher, _teacher_step
+
+    env = _teacher_env()
+    start = np.ones(4, dtype=bool)
+    expected = make_controller("PROPOSED_KF_DOB", env.spec).predict(np.asarray(env.raw, dtype=np.float64),
+                                                                     episode_start=start)[0]
+    student = np.full((4, 3), 2.0)  # outside [-1, 1]: the env is given the clipped action
+    rng = np.random.default_rng(0)
+    teacher = _Teacher("PROPOSED_KF_DOB", env.spec, "real")
+    act, label = _teacher_step(teacher, env, start, student, steps=0, distill_steps=100, rng=rng)
+    np.testing.assert_array_equal(label, expected.astype(np.float32))
+    np.testing.assert_array_equal(act, expected)  # mix probability 1: the teacher acts
+    teacher = _Teacher("PROPOSED_KF_DOB", env.spec, "real")
+    act, label = _teacher_step(teacher, env, start, student, steps=50, distill_steps=100, rng=rng)
+    np.testing.assert_array_equal(act, np.ones((4, 3)))  # probability 0: the (clipped) student acts
+    limits = np.asarray(env.spec.force_limits)
+    np.testing.assert_array_equal(teacher.dob._f, np.broadcast_to(limits, (4, 3)))  # told the force applied
+    env.close()
+
+
+def test_a_perfect_link_teacher_ignores_the_packets():
+    """On a perfect link the teacher sees the present target from the env's info, so its label
+    does not change when the packet fields of the raw observation are scrambled."""
+    from agents.batched_ppo import _Teacher
+    from auv_follow_env.layout import OBS_INDEX_V1
+
+    env = _teacher_env()
+    start = np.ones(4, dtype=bool)
+    raw = np.asarray(env.raw, dtype=np.float64)
+    scrambled = raw.copy()
+    for name in ("target_dx", "target_dy", "target_u", "ref_dx", "ref_dy", "packet_age"):
+        scrambled[:, OBS_INDEX_V1[name]] += 3.0
+    a = _Teacher("PROPOSED_KF_DOB", env.spec, "perfect").label(raw, env.info, start)
+    b = _Teacher("PROPOSED_KF_DOB", env.spec, "perfect").label(scrambled, env.info, start)
+    c = _Teacher("PROPOSED_KF_DOB", env.spec, "real").label(scrambled, env.info, start)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, c)
+    env.close()
+
+
+@pytest.mark.parametrize("hp, mode, env_id, match", [
+    ({"teacher": "NOPE", "distill_steps": 10}, "scratch", "AUVFollow-Easy-v1", r"teacher='NOPE' is invalid"),
+    ({"distill_steps": 10}, "scratch", "AUVFollow-Easy-v1", r"distill_steps=10 needs a teacher"),
+    ({"teacher": "PROPOSED", "distill_steps": -1}, "scratch", "AUVFollow-Easy-v1", r"distill_steps=-1 is invalid"),
+    ({"teacher": "PROPOSED", "teacher_link": "fast"}, "scratch", "AUVFollow-Easy-v1", r"teacher_link='fast'"),
+    ({"teacher": "PROPOSED", "distill_steps": 10}, "residual", "AUVFollow-Easy-v1", r"needs mode='scratch'"),
+    ({"teacher": "PROPOSED", "distill_steps": 10}, "scratch", "AUVFollow-S4-v0", r"needs a v1 env id"),
+    ({"teacher": "PROPOSED", "distill_steps": 10, "policy_kwargs": {"recurrent": True}}, "scratch",
+     "AUVFollow-Easy-v1", r"recurrent=True"),
+])
+def test_distillation_options_are_checked(hp, mode, env_id, match):
+    from agents.batched_ppo import _check_teacher
+
+    with pytest.raises(ValueError, match=match):
+        _check_teacher(hp, mode, env_id)
+
+
+def test_a_distilled_run_imitates_first_then_runs_ppo(tmp_path):
+    """distill_steps=128 of a 256-step budget (64 samples per update): two imitation updates (no
+    PPO statistics: entropy is NaN), then two PPO updates; the run loads and acts like any other."""
+    import csv
+
+    from agents.cli import main
+    from agents.train import evaluate_agent, load_agent
+
+    assert main(["train", "--algo", "bppo", "--env", "AUVFollow-Easy-v1", "--mode", "scratch", "--n-envs", "8",
+                 "--hp", "n_steps=8", "--hp", "batch_size=32", "--hp", "teacher=PROPOSED_KF_DOB",
+                 "--hp", "distill_steps=128", "--timesteps", "256", "--checkpoint-freq", "0", "--eval-freq", "0",
+                 "--no-final-eval", "--no-progress", "--no-tensorboard", "--out", str(tmp_path),
+                 "--run-name", "r"]) == 0
+    with open(tmp_path / "r" / "progress.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [np.isnan(float(r["entropy"])) for r in rows] == [True, True, False, False]
+    assert all(np.isfinite(float(r["policy_loss"])) for r in rows)
+    cfg = yaml.safe_load((tmp_path / "r" / "config.yaml").read_text())
+    assert cfg["hyperparams"]["teacher"] == "PROPOSED_KF_DOB" and cfg["hyperparams"]["teacher_link"] == "perfect"
+    df = evaluate_agent(load_agent(tmp_path / "r"), [3], progress=False)
+    assert np.isfinite(df["true_steady_mean"]).all()
