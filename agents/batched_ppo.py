@@ -42,6 +42,17 @@ reference point relative to the follower, from the env's ``info["true_reference"
 ``info["follower_pose"]``: dx, dy in the body frame, cos/sin of the heading error; the
 actor never does, and evaluation needs no privileged input).
 
+**Distillation** (``teacher``, ``teacher_link``, ``distill_steps``): for the first
+``distill_steps`` env steps the student is trained by DAgger, not PPO. A scripted controller
+(the teacher, batched) labels every state; the env executes the teacher's action with
+probability :func:`mix_probability` (1 falling linearly to 0 at half of ``distill_steps``) and
+the student's mean otherwise, so the student is finally labelled on the states it reaches
+itself. The actor's mean is regressed onto the labels (MSE, logged as ``policy_loss``) and the
+critic onto the returns of the executed actions. ``teacher_link="perfect"`` gives the teacher
+the present target exactly (:func:`agents.floors.perfect_link_observation`: privileged, training
+only); ``"real"`` the same link as the student. The teacher's disturbance observer is told the
+force the env was commanded, not the teacher's own. PPO then continues from the student.
+
 **Threads.** The env steps on numba's serial kernel (``parallel=False``) and torch uses
 ``torch_threads`` threads (default 1): training is a serial loop of env step, base
 controller, policy forward, so two thread pools would only fight for the same cores.
