@@ -915,7 +915,8 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
 
 def plot_leaderboard(board: pd.DataFrame, path: str | Path, metric: str = "true_steady_mean",
                      prov: Mapping[str, Any] | None = None) -> None:
-    """One panel per tier: the IQM of ``metric`` per policy with its 95 % CI (log scale)."""
+    """One panel per tier, stacked (the policy names need the width): the IQM of ``metric`` per
+    policy with its 95 % CI (log scale)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -923,9 +924,10 @@ def plot_leaderboard(board: pd.DataFrame, path: str | Path, metric: str = "true_
     import matplotlib.ticker  # noqa: F401  (matplotlib.ticker below)
 
     tiers = list(dict.fromkeys(board["tier"]))
-    n_pol = board.groupby("tier").size().max()
-    fig, axes = plt.subplots(1, len(tiers), figsize=(3.6 * len(tiers) + 1.5, 0.35 * n_pol + 1.6), squeeze=False)
-    for ax, tier in zip(axes[0], tiers, strict=True):
+    sizes = [int((board["tier"] == t).sum()) for t in tiers]
+    fig, axes = plt.subplots(len(tiers), 1, figsize=(10.0, 0.24 * sum(sizes) + 1.1 * len(tiers) + 0.6),
+                             squeeze=False, gridspec_kw={"height_ratios": sizes})
+    for ax, tier in zip(axes[:, 0], tiers, strict=True):
         sub = board[board["tier"] == tier].sort_values(f"{metric}_iqm", ascending=False)
         y = np.arange(len(sub))
         est = sub[f"{metric}_iqm"].to_numpy()
@@ -947,7 +949,7 @@ def plot_leaderboard(board: pd.DataFrame, path: str | Path, metric: str = "true_
         ax.set_xlabel(f"IQM {metric.replace('true_', '')} [m]")
     grey = ", grey: floors (references)" if (board["kind"] == "reference").any() else ""
     fig.suptitle(f"true-reference error, IQM with 95 % CI (orange: classical, blue: learned{grey})", fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.0, 1.0, 1.0 - 0.4 / fig.get_figheight()))  # room for the title
     meta = {"Description": json.dumps(prov, default=str)} if prov is not None else None
     fig.savefig(path, dpi=120, metadata=meta)
     plt.close(fig)
