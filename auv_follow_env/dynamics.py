@@ -693,7 +693,7 @@ def integrate(state, p, cfg, t0, forces, fast=False):
                 state[a + b, c] = wk[_ix(K_ST + c, b)]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _load_random_forcing(proc, i, wk, b):
     """Env i's step-constant random forcing (v_cx, v_cy, d_u, d_v, d_r, u_t, r_t deviations)
     into lane b of a block (rows K_G..)."""
@@ -707,7 +707,7 @@ def _gm(x, a, std, rs, proc, i):
     return a * x + math.sqrt(1.0 - a * a) * std * normal01(rs, proc, i)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def update_processes(proc, rs, p, i):
     """Advance env i's random processes by one control step (draws only where a std > 0)."""
     if p[i, P_OUU_STD] > 0.0:
@@ -735,7 +735,7 @@ def _current_vector(proc, p, i):
     proc[i, R_CGY] = sp * math.sin(proc[i, R_CDIR])
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _heading_trig(proc, key, col, x):
     """(cos x, sin x), from env i's cache row ``proc`` if it holds them for x, else libm (cached)."""
     if proc[key] != x or math.copysign(1.0, proc[key]) != math.copysign(1.0, x):  # (-0.0: sin differs)
@@ -745,7 +745,7 @@ def _heading_trig(proc, key, col, x):
     return proc[col], proc[col + 1]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def refresh_trig(state, k, proc, p, cfg, i):
     """Make env i's cached libm values those of its present state and time (computed only
     where the keys differ): the ten tones at t = k dt and cos/sin of both headings."""
@@ -763,7 +763,7 @@ def refresh_trig(state, k, proc, p, cfg, i):
     _heading_trig(pr, R_PTK, R_PTC, state[i, 8])
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def refresh_trig_block(k, proc, cfg, a, m, wk, fast):
     """:func:`refresh_trig` for envs a..a+m-1 at once, after :func:`advance_block` (the new
     state in rows K_ST.., the tone frequencies and phases in rows K_OM.., K_PH..): the libm
@@ -899,7 +899,7 @@ def _send(state, proc, queue, rs, p, cfg, i, step):
     proc[i, R_QLEN] = n + 1
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def link_tick(state, proc, queue, rs, p, cfg, i, step):
     """The link at control step ``step``: send if due, then take the newest arrived packet."""
     if step >= proc[i, R_NEXT] - 1e-9:
@@ -951,7 +951,7 @@ def _lag(prev, cmd, alpha, lim):
     return new
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def thrusters(proc, p, cfg, i, fu, fv, fr):
     """Applied forces from the commanded ones: first-order lag and rate limit (none in v0)."""
     alpha = p[i, P_TH_ALPHA]
@@ -967,7 +967,7 @@ def thrusters(proc, p, cfg, i, fu, fv, fr):
     return fu, fv, fr
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _observe(state, k, proc, p, cfg, i, obs, truth):
     """Fill obs[i] (what the follower has) and truth[i] (evaluation only); return error.
 
