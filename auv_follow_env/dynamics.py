@@ -693,7 +693,7 @@ def integrate(state, p, cfg, t0, forces, fast=False):
                 state[a + b, c] = wk[_ix(K_ST + c, b)]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _load_random_forcing(proc, i, wk, b):
     """Env i's step-constant random forcing (v_cx, v_cy, d_u, d_v, d_r, u_t, r_t deviations)
     into lane b of a block (rows K_G..)."""
@@ -707,7 +707,7 @@ def _gm(x, a, std, rs, proc, i):
     return a * x + math.sqrt(1.0 - a * a) * std * normal01(rs, proc, i)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def update_processes(proc, rs, p, i):
     """Advance env i's random processes by one control step (draws only where a std > 0)."""
     if p[i, P_OUU_STD] > 0.0:
@@ -735,7 +735,7 @@ def _current_vector(proc, p, i):
     proc[i, R_CGY] = sp * math.sin(proc[i, R_CDIR])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _heading_trig(proc, key, col, x):
     """(cos x, sin x), from env i's cache row ``proc`` if it holds them for x, else libm (cached)."""
     if proc[key] != x or math.copysign(1.0, proc[key]) != math.copysign(1.0, x):  # (-0.0: sin differs)
@@ -745,7 +745,7 @@ def _heading_trig(proc, key, col, x):
     return proc[col], proc[col + 1]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def refresh_trig(state, k, proc, p, cfg, i):
     """Make env i's cached libm values those of its present state and time (computed only
     where the keys differ): the ten tones at t = k dt and cos/sin of both headings."""
@@ -763,7 +763,7 @@ def refresh_trig(state, k, proc, p, cfg, i):
     _heading_trig(pr, R_PTK, R_PTC, state[i, 8])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def refresh_trig_block(k, proc, cfg, a, m, wk, fast):
     """:func:`refresh_trig` for envs a..a+m-1 at once, after :func:`advance_block` (the new
     state in rows K_ST.., the tone frequencies and phases in rows K_OM.., K_PH..): the libm
@@ -899,7 +899,7 @@ def _send(state, proc, queue, rs, p, cfg, i, step):
     proc[i, R_QLEN] = n + 1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def link_tick(state, proc, queue, rs, p, cfg, i, step):
     """The link at control step ``step``: send if due, then take the newest arrived packet."""
     if step >= proc[i, R_NEXT] - 1e-9:
@@ -951,7 +951,7 @@ def _lag(prev, cmd, alpha, lim):
     return new
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def thrusters(proc, p, cfg, i, fu, fv, fr):
     """Applied forces from the commanded ones: first-order lag and rate limit (none in v0)."""
     alpha = p[i, P_TH_ALPHA]
@@ -967,7 +967,7 @@ def thrusters(proc, p, cfg, i, fu, fv, fr):
     return fu, fv, fr
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _observe(state, k, proc, p, cfg, i, obs, truth):
     """Fill obs[i] (what the follower has) and truth[i] (evaluation only); return error.
 
@@ -1051,6 +1051,25 @@ def _observe(state, k, proc, p, cfg, i, obs, truth):
     return err
 
 
+def _called(disp):
+    """A second dispatcher of the jitted function ``disp`` that its callers call instead of
+    inlining (no ``inline="always"``): for the reset, which runs once per episode, and the single
+    env's step (kernel_one, one env per call: nothing to vectorise), so that the link, processes,
+    thrusters, sin/cos caches and observation compile once as functions instead of as an
+    inlined copy in each kernel (cold start, issue 23). Same code, same results."""
+    opts = {k: v for k, v in disp.targetoptions.items() if k not in ("nopython", "inline")}
+    return njit(cache=True, **opts)(disp.py_func)
+
+
+_link_tick_r = _called(link_tick)
+_update_processes_r = _called(update_processes)
+_load_random_forcing_r = _called(_load_random_forcing)
+_observe_r = _called(_observe)
+_thrusters_r = _called(thrusters)
+_refresh_trig_r = _called(refresh_trig)
+_refresh_trig_block_r = _called(refresh_trig_block)
+
+
 @njit(cache=True)
 def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs, truth):
     """Start episodes for the envs in ``idx`` (their params rows must be set).
@@ -1077,11 +1096,11 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
             _init_processes(proc, rs, p, i, directions[n0 + b])
             proc[i, R_NEXT] = -W
             proc[i, R_LAST_SEND] = -W
-            link_tick(state, proc, queue, rs, p, cfg, i, -W)
+            _link_tick_r(state, proc, queue, rs, p, cfg, i, -W)
             _gather_lane(state, p, i, wk, b)
         for step in range(-W, 0):
             for b in range(m):
-                _load_random_forcing(proc, idx[n0 + b], wk, b)
+                _load_random_forcing_r(proc, idx[n0 + b], wk, b)
                 wk[_ix(K_T0, b)] = step * dt
             _tone_values(wk, m, False)  # the warm-up's sin/cos: libm
             _heading_values(wk, m, False)
@@ -1090,8 +1109,8 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
                 i = idx[n0 + b]
                 for c in range(9):
                     state[i, c] = wk[_ix(K_ST + c, b)]
-                update_processes(proc, rs, p, i)
-                link_tick(state, proc, queue, rs, p, cfg, i, step + 1)
+                _update_processes_r(proc, rs, p, i)
+                _link_tick_r(state, proc, queue, rs, p, cfg, i, step + 1)
         for b in range(m):
             _place_follower(state, k, proc, p, cfg, idx[n0 + b], obs, truth)
 
@@ -1114,7 +1133,7 @@ def _place_follower(state, k, proc, p, cfg, i, obs, truth):
     state[i, 4] = 0.0
     state[i, 5] = 0.0
     k[i] = 0
-    _observe(state, k, proc, p, cfg, i, obs, truth)
+    _observe_r(state, k, proc, p, cfg, i, obs, truth)
 
 
 def error_samples(err_hist, err_stage, i, n):
