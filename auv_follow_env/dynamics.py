@@ -1051,6 +1051,25 @@ def _observe(state, k, proc, p, cfg, i, obs, truth):
     return err
 
 
+def _called(disp):
+    """A second dispatcher of the jitted function ``disp`` that its callers call instead of
+    inlining (no ``inline="always"``): for the reset, which runs once per episode, and the single
+    env's step (kernel_one, one env per call: nothing to vectorise), so that the link, processes,
+    thrusters, sin/cos caches and observation compile once as functions instead of as an
+    inlined copy in each kernel (cold start, issue 23). Same code, same results."""
+    opts = {k: v for k, v in disp.targetoptions.items() if k not in ("nopython", "inline")}
+    return njit(cache=True, **opts)(disp.py_func)
+
+
+_link_tick_r = _called(link_tick)
+_update_processes_r = _called(update_processes)
+_load_random_forcing_r = _called(_load_random_forcing)
+_observe_r = _called(_observe)
+_thrusters_r = _called(thrusters)
+_refresh_trig_r = _called(refresh_trig)
+_refresh_trig_block_r = _called(refresh_trig_block)
+
+
 @njit(cache=True)
 def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs, truth):
     """Start episodes for the envs in ``idx`` (their params rows must be set).
@@ -1077,11 +1096,11 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
             _init_processes(proc, rs, p, i, directions[n0 + b])
             proc[i, R_NEXT] = -W
             proc[i, R_LAST_SEND] = -W
-            link_tick(state, proc, queue, rs, p, cfg, i, -W)
+            _link_tick_r(state, proc, queue, rs, p, cfg, i, -W)
             _gather_lane(state, p, i, wk, b)
         for step in range(-W, 0):
             for b in range(m):
-                _load_random_forcing(proc, idx[n0 + b], wk, b)
+                _load_random_forcing_r(proc, idx[n0 + b], wk, b)
                 wk[_ix(K_T0, b)] = step * dt
             _tone_values(wk, m, False)  # the warm-up's sin/cos: libm
             _heading_values(wk, m, False)
@@ -1090,8 +1109,8 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
                 i = idx[n0 + b]
                 for c in range(9):
                     state[i, c] = wk[_ix(K_ST + c, b)]
-                update_processes(proc, rs, p, i)
-                link_tick(state, proc, queue, rs, p, cfg, i, step + 1)
+                _update_processes_r(proc, rs, p, i)
+                _link_tick_r(state, proc, queue, rs, p, cfg, i, step + 1)
         for b in range(m):
             _place_follower(state, k, proc, p, cfg, idx[n0 + b], obs, truth)
 
@@ -1114,7 +1133,7 @@ def _place_follower(state, k, proc, p, cfg, i, obs, truth):
     state[i, 4] = 0.0
     state[i, 5] = 0.0
     k[i] = 0
-    _observe(state, k, proc, p, cfg, i, obs, truth)
+    _observe_r(state, k, proc, p, cfg, i, obs, truth)
 
 
 def error_samples(err_hist, err_stage, i, n):

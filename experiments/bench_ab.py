@@ -2,6 +2,7 @@
 
     python -m experiments.bench_ab --baseline 5a3ae9d          # any revision of this repository
     python -m experiments.bench_ab --baseline 5a3ae9d --sizes 0 1024 4096 --rounds 3   # 0: the single env
+    python -m experiments.bench_ab --baseline main --sizes 0 4096 --cold 2   # and the cold start
 
 Absolute rates on a shared machine drift by tens of percent between runs (other virtual
 machines, frequency), so a speed-up is only meaningful against a baseline measured in the
@@ -24,6 +25,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from experiments.bench_vector import cold_start
 from experiments.outputs import write_report
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,10 +77,13 @@ def main(argv: list[str] | None = None) -> str:
     p.add_argument("--sizes", type=int, nargs="+", default=[4096], help="numbers of envs (default 4096)")
     p.add_argument("--rounds", type=int, default=3, help="alternating rounds per cell (default 3)")
     p.add_argument("--budget", type=float, default=2.0, help="timed seconds per measurement (default 2)")
+    p.add_argument("--cold", type=int, default=0, metavar="ROUNDS",
+                   help="also time the cold start (first reset + step of the single Hard-v1 env with an empty "
+                        "numba cache) of each side, alternating, this many rounds (default 0: not timed)")
     p.add_argument("--out", type=Path, default=ROOT / "results" / "tmp" / "bench_ab.md", help="Markdown output")
     a = p.parse_args(argv)
-    if a.rounds < 1 or a.budget <= 0 or any(n < 0 for n in a.sizes):
-        p.error("--rounds must be >= 1, --sizes >= 0 (0: the single env), --budget > 0")
+    if a.rounds < 1 or a.budget <= 0 or any(n < 0 for n in a.sizes) or a.cold < 0:
+        p.error("--rounds must be >= 1, --sizes >= 0 (0: the single env), --budget > 0, --cold >= 0")
     rev = subprocess.run(["git", "rev-parse", "--short", a.baseline], cwd=ROOT, capture_output=True, text=True)
     if rev.returncode != 0:
         p.error(f"--baseline {a.baseline!r} is not a revision of this repository")
@@ -99,6 +104,13 @@ def main(argv: list[str] | None = None) -> str:
                 rows.append((n, env_id, par, best["baseline"], best["this"]))
                 print(f"N={n} {env_id} parallel={par}: {best['baseline'] / 1e6:.3f} M -> {best['this'] / 1e6:.3f} M",
                       flush=True)
+        cold = {"baseline": [], "this": []}
+        for _ in range(a.cold):
+            for side, src in (("baseline", base), ("this", ROOT)):
+                c = cold_start("AUVFollow-Hard-v1", 0, root=src)
+                cold[side].append(c)
+                print(f"cold start {side}: {c['cold']:.1f} s wall, {c['cold_cpu']:.1f} s CPU; "
+                      f"cached {c['cached']:.2f} s", flush=True)
     lines = [f"# This checkout ({head}) against {a.baseline} ({rev.stdout.strip()}), env-steps/s", "",
              f"Native vector env, random actions, {a.budget:g} s per measurement in a fresh process (numba cache "
              f"warm), baseline and this checkout alternating for {a.rounds} rounds, best kept; load average "
@@ -109,6 +121,17 @@ def main(argv: list[str] | None = None) -> str:
         size = "single env (gym.make)" if n == 0 else n
         lines.append(f"| {size} | {env_id} | {'both cores' if par else 'one'} | {b / 1e6:.3f} M | {t / 1e6:.3f} M | "
                      f"{t / b:.2f}x |")
+    if a.cold:
+        lines += ["", f"Cold start: first `reset(); step(a)` of `gym.make('AUVFollow-Hard-v1')` in a new process "
+                  f"with an empty numba cache (import excluded), then the same with that cache; {a.cold} "
+                  "alternating rounds, the smallest kept (CPU seconds are less sensitive to other processes "
+                  "than wall seconds).", "",
+                  "| | baseline | this checkout | ratio |", "|---|---|---|---|"]
+        for key, label, unit in (("cold", "cold start, wall", "s"), ("cold_cpu", "cold start, CPU", "s"),
+                                 ("cached", "cached start, wall", "s")):
+            b = min(c[key] for c in cold["baseline"])
+            t = min(c[key] for c in cold["this"])
+            lines.append(f"| {label} | {b:.2f} {unit} | {t:.2f} {unit} | {t / b:.2f}x |")
     return write_report(a.out, "\n".join(lines) + "\n")
 
 

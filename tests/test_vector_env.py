@@ -308,7 +308,7 @@ def test_bench_script_smoke(tmp_path):
     out = tmp_path / "bench.md"
     text = main(["--budget", "0.01", "--sizes", "1", "3", "--no-parallel", "--no-cold-start", "--out", str(out)])
     assert out.read_text() == text
-    assert "| 3 |" in text and "native / SyncVectorEnv" in text
+    assert "| 3 |" in text and "native, both cores / SyncVectorEnv" in text
 
 
 def test_parallel_is_chosen_automatically_and_overridable():
