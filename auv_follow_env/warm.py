@@ -3,11 +3,10 @@
 numba compiles the kernels at their first call and keeps the machine code in its on-disk
 cache (``__pycache__`` beside the sources, or ``NUMBA_CACHE_DIR``); later processes load it in
 well under a second. On a fresh clone the first ``reset(); step(a)`` therefore pays the
-compilation: about 30 s of CPU for the single env on this project's 2-core machines, and as
-much again for each of the vector env's two step kernels (serial and threaded,
-results/bench_vector.md). ``scripts/setup.sh`` runs this module once after installing, so
-the first step a newcomer takes loads from the cache instead; with the cache in place the
-module takes a second or two.
+compilation: about 25 s of CPU for the single env on this project's 2-core machines, 15-30 s
+more for each of the vector env's serial and threaded kernels (results/bench_vector.md).
+``scripts/setup.sh`` runs this module once after installing, so the first step a newcomer
+takes loads from the cache instead; with the cache in place the module takes a second or two.
 
 Each job runs in a fresh process (the first reset and step of what it names), at most
 ``--processes`` at once (numba compiles on one thread; the jobs share no compiled code that
@@ -30,7 +29,9 @@ from __future__ import annotations
 import argparse
 import subprocess
 import sys
+import tempfile
 import time
+from typing import Any
 
 __all__ = ["JOBS", "warm", "main"]
 
@@ -66,22 +67,26 @@ def warm(jobs: tuple[str, ...] = tuple(JOBS), env_id: str = "AUVFollow-Hard-v1",
     if isinstance(processes, bool) or not isinstance(processes, int) or processes < 1:
         raise ValueError(f"processes={processes!r} is invalid: pass an int >= 1")
     pending = list(dict.fromkeys(jobs))
-    running: dict[str, tuple[subprocess.Popen, float]] = {}
+    running: dict[str, tuple[subprocess.Popen, float, Any]] = {}
     out: dict[str, float] = {}
     while pending or running:
         while pending and len(running) < processes:
             job = pending.pop(0)
+            log = tempfile.TemporaryFile(mode="w+")  # (a pipe could fill up and block the job)
             proc = subprocess.Popen([sys.executable, "-c", JOBS[job], env_id], stdout=subprocess.DEVNULL,
-                                    stderr=subprocess.PIPE, text=True)
-            running[job] = (proc, time.perf_counter())
-        for job, (proc, t0) in list(running.items()):
+                                    stderr=log, text=True)
+            running[job] = (proc, time.perf_counter(), log)
+        for job, (proc, t0, log) in list(running.items()):
             if proc.poll() is None:
                 continue
             del running[job]
-            err = proc.stderr.read() if proc.stderr else ""
+            log.seek(0)
+            err = log.read()
+            log.close()
             if proc.returncode != 0:
-                for other, _ in running.values():
+                for other, _, other_log in running.values():
                     other.kill()
+                    other_log.close()
                 raise RuntimeError(f"warm job {job!r} failed (exit {proc.returncode}):\n{err}")
             out[job] = time.perf_counter() - t0
             if verbose:
