@@ -444,18 +444,6 @@ def _ix(typingctx, row, b):
     return sig, codegen
 
 
-@intrinsic
-def _opaque(typingctx, x):
-    """``x`` typed as its non-literal type: passing ``_opaque(False)`` to a jitted function
-    compiles no specialisation for the literal (numba specialises calls on literal arguments)."""
-    sig = types.unliteral(x)(x)
-
-    def codegen(context, builder, sig, args):
-        return context.cast(builder, args[0], sig.args[0], sig.return_type)
-
-    return sig, codegen
-
-
 @njit(cache=True, inline="always")
 def _sincos_rows(wk, src, sin_row, cos_row, m, fast):
     """sin/cos of lanes 0..m-1 of row ``src`` into rows ``sin_row`` and ``cos_row`` (all three
@@ -701,10 +689,17 @@ def _load_random_forcing(proc, i, wk, b):
                          proc[i, R_OUU], proc[i, R_OUR]))
 
 
+@njit(cache=True, inline="always")
+def _gm_z(x, a, std, z):
+    """One exact step of a stationary Gauss-Markov (OU) process with per-step decay a, given the
+    standard normal ``z``."""
+    return a * x + math.sqrt(1.0 - a * a) * std * z
+
+
 @njit(cache=True)
 def _gm(x, a, std, rs, proc, i):
     """One exact step of a stationary Gauss-Markov (OU) process with per-step decay a."""
-    return a * x + math.sqrt(1.0 - a * a) * std * normal01(rs, proc, i)
+    return _gm_z(x, a, std, normal01(rs, proc, i))
 
 
 @njit(cache=True, inline="always")
@@ -726,6 +721,164 @@ def update_processes(proc, rs, p, i):
     for c in range(3):
         if p[i, P_DN + c] > 0.0:
             proc[i, R_DN + c] = _gm(proc[i, R_DN + c], p[i, P_DN_A], p[i, P_DN + c], rs, proc, i)
+
+
+# --- the random processes of a block of envs at once -------------------------------------------
+# update_processes_block draws the same normals as update_processes, env by env, from the same
+# uniforms in the same order (env i's Box-Muller pairs, its cached second value first), but the
+# transcendental functions of a block's pairs run in SIMD loops: with ``fast`` the logarithm by
+# :func:`fast_log` and the sine/cosine by :func:`fast_sincos` (each within 1 ULP of the exact value,
+# so a draw differs from libm's in its last bits at most), without it libm's calls as in normal01
+# (the same bits). Rows of the work buffer used meanwhile: the RK4 forcing rows (K_F0..), free
+# between steps.
+K_U1 = K_F0  # rows K_U1..K_U1 + 3: pair j's u1 in (0, 1], then sqrt(-2 log u1)
+K_U2 = K_F0 + 4  # pair j's angle 2 pi u2
+K_ZS, K_ZC = K_F0 + 8, K_F0 + 12  # sin and cos of pair j's angle
+K_CD, K_CDS, K_CDC = K_F0 + 16, K_F0 + 17, K_F0 + 18  # the current's direction, its sin and cos
+K_ENV = K_F0 + 19  # the lane's env index (set by the caller)
+_NPAIR = 4  # at most seven normals per env and step: four pairs
+
+# fdlibm's e_log.c (Sun Microsystems, 1993; freely distributable): x = 2^k (1 + f) with 1 + f in
+# [sqrt(2)/2, sqrt(2)), log(1 + f) = f - f^2/2 + s (f^2/2 + R(s^2)), s = f / (2 + f), R minimax
+_LN2_HI, _LN2_LO = 6.93147180369123816490e-01, 1.90821492927058770002e-10
+_LG1, _LG2, _LG3 = 6.666666666666735130e-01, 3.999999999940941908e-01, 2.857142874366239149e-01
+_LG4, _LG5, _LG6 = 2.222219843214978396e-01, 1.818357216161805012e-01, 1.531383769920937332e-01
+_LG7 = 1.479819860511658591e-01
+
+
+@intrinsic
+def _bits(typingctx, x):
+    """The IEEE-754 bits of the float64 ``x`` as an int64 (a bit cast)."""
+    if not isinstance(x, types.Float):
+        return None
+    sig = types.int64(types.float64)
+
+    def codegen(context, builder, sig, args):
+        return builder.bitcast(args[0], llir.IntType(64))
+
+    return sig, codegen
+
+
+@intrinsic
+def _from_bits(typingctx, n):
+    """The float64 whose IEEE-754 bits are the int64 ``n`` (a bit cast)."""
+    if not isinstance(n, types.Integer):
+        return None
+    sig = types.float64(types.int64)
+
+    def codegen(context, builder, sig, args):
+        return builder.bitcast(args[0], llir.DoubleType())
+
+    return sig, codegen
+
+
+@njit(cache=True, inline="always")
+def fast_log(x):
+    """log x within 1 ULP for positive normal x (fdlibm's method, branch-free: vectorises).
+    Not for 0, subnormals, infinities or NaN (the callers pass uniforms in (0, 1])."""
+    hx = _bits(x) >> 32
+    k = (hx >> 20) - 1023
+    hx &= 0x000FFFFF
+    i = (hx + 0x95F64) & 0x100000  # whether the mantissa is >= sqrt(2): then halve it
+    xm = _from_bits(((hx | (i ^ 0x3FF00000)) << 32) | (_bits(x) & 0xFFFFFFFF))
+    k += i >> 20
+    f = xm - 1.0
+    dk = float(k)
+    s = f / (2.0 + f)
+    z = s * s
+    w = z * z
+    t1 = w * (_LG2 + w * (_LG4 + w * _LG6))
+    t2 = z * (_LG1 + w * (_LG3 + w * (_LG5 + w * _LG7)))
+    r = t2 + t1
+    hfsq = 0.5 * f * f
+    near = ((hx - 0x6147A) | (0x6B851 - hx)) > 0  # 1 + f in [1.38, 1.42): the f^2/2 form
+    a = dk * _LN2_HI - ((hfsq - (s * (hfsq + r) + dk * _LN2_LO)) - f)
+    b = dk * _LN2_HI - ((s * (f - r) - dk * _LN2_LO) - f)
+    return a if near else b
+
+
+#: the processes in update_processes' order of draws: the column of their std (the current
+#: direction's step for c = 3), of their per-step decay, and their row in proc
+_PROC_STD = np.array([P_OUU_STD, P_OUR_STD, P_CS_STD, P_CD_STEP, P_DN, P_DN + 1, P_DN + 2], dtype=np.int64)
+_PROC_A = np.array([P_OUU_A, P_OUR_A, P_CS_A, P_CD_STEP, P_DN_A, P_DN_A, P_DN_A], dtype=np.int64)
+_PROC_ROW = np.array([R_OUU, R_OUR, R_CSX, R_CDIR, R_DN, R_DN + 1, R_DN + 2], dtype=np.int64)
+
+
+@njit(cache=True, inline="always")
+def _n_normals(p, i):
+    """How many normals env i's processes draw per control step."""
+    n = 0
+    for c in range(7):
+        n += p[i, _PROC_STD[c]] > 0.0
+    return n
+
+
+@njit(cache=True, inline="always")
+def _normal_at(wk, b, j):
+    """The j-th new normal of lane b this step: pair j // 2's cosine value, then its sine value."""
+    q = j >> 1
+    return wk[_ix(K_U1 + q, b)] * wk[_ix((K_ZS if j & 1 else K_ZC) + q, b)]
+
+
+@njit(cache=True, inline="always")
+def update_processes_block(proc, rs, p, m, wk, fast):
+    """:func:`update_processes` for the envs of lanes 0..m-1 (env indices in row K_ENV; the same
+    draws and updates per env; see the comment above K_U1): per env its uniforms, then the
+    block's logarithms and sines/cosines in SIMD loops, then per env its updates."""
+    npair_max = 0
+    for b in range(m):
+        i = int(wk[_ix(K_ENV, b)])
+        has = int(proc[i, R_GAUSS_HAS] != 0.0)
+        npair = max(0, _n_normals(p, i) - has + 1) // 2
+        npair_max = max(npair_max, npair)
+        for j in range(_NPAIR):
+            if j < npair:
+                wk[_ix(K_U1 + j, b)] = 1.0 - uniform01(rs, i)
+                wk[_ix(K_U2 + j, b)] = 2.0 * math.pi * uniform01(rs, i)
+            else:
+                wk[_ix(K_U1 + j, b)] = 1.0
+                wk[_ix(K_U2 + j, b)] = 0.0
+    if npair_max == 0:
+        return
+    for j in range(npair_max):
+        if fast:
+            for b in range(m):
+                wk[_ix(K_U1 + j, b)] = math.sqrt(-2.0 * fast_log(wk[_ix(K_U1 + j, b)]))
+        else:
+            for b in range(m):
+                wk[_ix(K_U1 + j, b)] = math.sqrt(-2.0 * math.log(wk[_ix(K_U1 + j, b)]))
+        _sincos_rows(wk, K_U2 + j, K_ZS + j, K_ZC + j, m, fast)
+    moved_any = False
+    for b in range(m):
+        i = int(wk[_ix(K_ENV, b)])
+        n = _n_normals(p, i)
+        j = -1 if proc[i, R_GAUSS_HAS] != 0.0 and n > 0 else 0  # -1: the cached normal first
+        for c in range(7):
+            col = _PROC_STD[c]
+            if p[i, col] > 0.0:
+                z = proc[i, R_GAUSS] if j < 0 else _normal_at(wk, b, j)
+                j += 1
+                if c == 3:
+                    proc[i, R_CDIR] += p[i, P_CD_STEP] * z
+                else:
+                    row = _PROC_ROW[c]
+                    proc[i, row] = _gm_z(proc[i, row], p[i, _PROC_A[c]], p[i, col], z)
+        if n > 0:
+            if j > 0:  # new pairs were drawn: the last one's sine value, cached if unused
+                proc[i, R_GAUSS] = _normal_at(wk, b, 2 * ((j - 1) >> 1) + 1)
+            proc[i, R_GAUSS_HAS] = 1.0 if j & 1 else 0.0
+        moved = p[i, P_CS_STD] > 0.0 or p[i, P_CD_STEP] > 0.0
+        moved_any |= moved
+        wk[_ix(K_CD, b)] = proc[i, R_CDIR]
+    if not moved_any:
+        return
+    _sincos_rows(wk, K_CD, K_CDS, K_CDC, m, fast)
+    for b in range(m):
+        i = int(wk[_ix(K_ENV, b)])
+        if p[i, P_CS_STD] > 0.0 or p[i, P_CD_STEP] > 0.0:
+            sp = max(0.0, p[i, P_CS_MEAN] + proc[i, R_CSX])
+            proc[i, R_CGX] = sp * wk[_ix(K_CDC, b)]
+            proc[i, R_CGY] = sp * wk[_ix(K_CDS, b)]
 
 
 @njit(cache=True)
@@ -1063,6 +1216,7 @@ def _called(disp):
 
 _link_tick_r = _called(link_tick)
 _update_processes_r = _called(update_processes)
+_update_processes_block_r = _called(update_processes_block)
 _load_random_forcing_r = _called(_load_random_forcing)
 _observe_r = _called(_observe)
 _thrusters_r = _called(thrusters)
@@ -1080,11 +1234,14 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
     the link is in its steady state: in v0 the follower receives genuine tau-old
     measurements from the first step (nothing is zero-filled). The follower starts at rest
     with the held packet's heading, ``init_offset`` metres behind the reference point of
-    the held packet (of the present target if no packet has arrived yet).
+    the held packet (of the present target if no packet has arrived yet). The warm-up computes its
+    sin/cos and the processes' draws as the step does (``cfg[C_FAST]``: SIMD or libm), a block of
+    envs at once.
     """
     W = int(cfg[C_WARM])
     dt = cfg[C_DT]
     nsub = int(cfg[C_NSUB])
+    fast = cfg[C_FAST] != 0.0
     wk = work_buffer(True)  # forces stay 0 in the warm-up (the follower is placed below)
     for n0 in range(0, idx.shape[0], BLOCK):  # the warm-up of up to BLOCK envs at once
         m = min(BLOCK, idx.shape[0] - n0)
@@ -1102,15 +1259,17 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
             for b in range(m):
                 _load_random_forcing_r(proc, idx[n0 + b], wk, b)
                 wk[_ix(K_T0, b)] = step * dt
-            _tone_values(wk, m, False)  # the warm-up's sin/cos: libm
-            _heading_values(wk, m, False)
-            advance_block(wk, dt, nsub, m, _opaque(False))
+            _tone_values(wk, m, fast)
+            _heading_values(wk, m, fast)
+            advance_block(wk, dt, nsub, m, fast)
             for b in range(m):
                 i = idx[n0 + b]
                 for c in range(9):
                     state[i, c] = wk[_ix(K_ST + c, b)]
-                _update_processes_r(proc, rs, p, i)
-                _link_tick_r(state, proc, queue, rs, p, cfg, i, step + 1)
+                wk[_ix(K_ENV, b)] = i
+            _update_processes_block_r(proc, rs, p, m, wk, fast)
+            for b in range(m):
+                _link_tick_r(state, proc, queue, rs, p, cfg, idx[n0 + b], step + 1)
         for b in range(m):
             _place_follower(state, k, proc, p, cfg, idx[n0 + b], obs, truth)
 
@@ -1157,8 +1316,8 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stag
     """One control step for envs lo..hi-1 (actions assumed finite; see :func:`step_kernel`).
 
     Block by block: actions and thrusters per env, the RK4 step for the block's envs at
-    once (:func:`advance_block`), per env the random processes, the new step's libm values
-    for the block at once (:func:`refresh_trig_block`), then per env the link, the
+    once (:func:`advance_block`), the block's random processes (:func:`update_processes_block`),
+    the new step's libm values for the block at once (:func:`refresh_trig_block`), then per env the link, the
     observation, the reward and termination. ``cfg[C_FAST]`` = 1 (``sincos="simd"``, the
     envs' default) computes the step's sin/cos by :func:`fast_sincos`, 0 by libm.
     """
@@ -1197,7 +1356,8 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stag
             for c in range(9):
                 state[i, c] = wk[_ix(K_ST + c, b)]
             k[i] += 1
-            update_processes(proc, rs, p, i)
+            wk[_ix(K_ENV, b)] = i
+        update_processes_block(proc, rs, p, m, wk, fast)
         refresh_trig_block(k, proc, cfg, a, m, wk, fast)  # the new step's libm values, used from here on
         for b in range(m):
             i = a + b

@@ -254,7 +254,7 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         info = {"tracking_error": float(truth[12]), "time": 0.0, "true_target": truth[3:9],
                 "true_reference": truth[9:12], "follower_pose": truth[0:3]}
         if self._sim.v1:
-            info["condition"] = dict(self._sim.conditions[0])
+            info["condition"] = self._sim.condition(0)
         if self.render_mode == "human":
             self.render()
         return self._sim.obs[0].copy(), info

@@ -19,8 +19,8 @@ from auv_follow_env.kernel_one import packed_arrays, reset_one, step_one
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1
 from auv_follow_env.params import LATENCY_MODELS, RANGEABLE, Condition, EnvConfig, VehicleParams
 
-__all__ = ["BatchSim", "param_row", "sample_params", "params_from_uniforms", "sample_params_v1", "link_row",
-           "config_vector", "queue_capacity", "SINCOS", "check_sincos"]
+__all__ = ["BatchSim", "param_row", "sample_params", "params_from_uniforms", "sample_params_v1",
+           "sample_params_v1_many", "link_row", "config_vector", "queue_capacity", "SINCOS", "check_sincos"]
 
 TWO_PI = 2.0 * math.pi
 #: range of the current's period [s] (ours: "slowly varying", tens of seconds)
@@ -40,46 +40,83 @@ def param_row(*, vehicle: VehicleParams, target_speed: float = 0.0, surge_amp: f
     ``disturbance`` is three rows (u, v, r) of (amp1, phase1, amp2, phase2) in N / N m;
     ``latency_steps`` the constant delay tau / dt of the v0 link.
     """
-    row = np.zeros(dyn.NP)
-    row[[dyn.P_M, dyn.P_IZ, dyn.P_XU, dyn.P_YV, dyn.P_NR]] = (
-        vehicle.m, vehicle.I_z, vehicle.X_u, vehicle.Y_v, vehicle.N_r)
-    row[dyn.P_TV:dyn.P_TPR + 1] = (target_speed, surge_amp, TWO_PI / surge_period, surge_phase,
-                                   yaw_rate_amp, TWO_PI / yaw_period, yaw_phase)
+    row = _param_rows(np.zeros(dyn.NP), vehicle, target_speed, surge_amp, surge_period, yaw_rate_amp,
+                      yaw_period, latency_steps)
+    row[dyn.P_TPU], row[dyn.P_TPR] = surge_phase, yaw_phase
     row[dyn.P_CX:dyn.P_CX + 4] = current_x
     row[dyn.P_CY:dyn.P_CY + 4] = current_y
     row[dyn.P_D:dyn.P_D + 12] = np.asarray(disturbance, dtype=np.float64).ravel()
-    # v0: no random processes, unbounded target, ideal thrusters, a packet every step with the
-    # constant latency set by link_row (or config_vector's delay)
-    row[dyn.P_OUU_A] = row[dyn.P_OUR_A] = row[dyn.P_CS_A] = row[dyn.P_DN_A] = 1.0
-    row[dyn.P_ULO], row[dyn.P_UHI], row[dyn.P_RMAX] = -math.inf, math.inf, math.inf
-    row[dyn.P_TH_ALPHA], row[dyn.P_TH_RATE] = 1.0, math.inf
-    row[dyn.P_PER] = 1.0
-    row[dyn.P_LAT_MEAN] = latency_steps
-    row[dyn.P_LAT_CORR] = 1.0
     return row
 
 
+def _param_rows(rows: np.ndarray, vehicle, target_speed, surge_amp, surge_period, yaw_rate_amp, yaw_period,
+                latency_steps) -> np.ndarray:
+    """:func:`param_row`'s vehicle, target and v0 link columns in the zeroed ``rows`` ((NP,) or (n, NP);
+    each value a float or an (n,) array of per-row values); returns ``rows``."""
+    for col, v in ((dyn.P_M, vehicle.m), (dyn.P_IZ, vehicle.I_z), (dyn.P_XU, vehicle.X_u), (dyn.P_YV, vehicle.Y_v),
+                   (dyn.P_NR, vehicle.N_r), (dyn.P_TV, target_speed), (dyn.P_TAU, surge_amp),
+                   (dyn.P_TWU, TWO_PI / surge_period), (dyn.P_TAR, yaw_rate_amp), (dyn.P_TWR, TWO_PI / yaw_period)):
+        rows[..., col] = v
+    # v0: no random processes, unbounded target, ideal thrusters, a packet every step with the
+    # constant latency set by link_row (or config_vector's delay)
+    for col in (dyn.P_OUU_A, dyn.P_OUR_A, dyn.P_CS_A, dyn.P_DN_A, dyn.P_TH_ALPHA, dyn.P_PER, dyn.P_LAT_CORR):
+        rows[..., col] = 1.0
+    for col in (dyn.P_ULO,):
+        rows[..., col] = -math.inf
+    for col in (dyn.P_UHI, dyn.P_RMAX, dyn.P_TH_RATE):
+        rows[..., col] = math.inf
+    rows[..., dyn.P_LAT_MEAN] = latency_steps
+    return rows
+
+
+def _each(f, x):
+    """f (a ``math`` function of one float) of x, or of each element of the array x: the same
+    libm call per element (numpy's own SIMD exp may differ from it in the last bit)."""
+    if isinstance(x, np.ndarray):
+        return np.array([f(v) for v in x.tolist()], dtype=np.float64)
+    return f(x)
+
+
 def link_row(row: np.ndarray, c: Condition, dt: float, vehicle: VehicleParams) -> np.ndarray:
-    """Write condition ``c``'s processes, thrusters and link into a param row (in place)."""
-    row[dyn.P_OUU_STD], row[dyn.P_OUU_A] = c.target_speed_std, math.exp(-dt / c.target_speed_corr_s)
-    row[dyn.P_OUR_STD], row[dyn.P_OUR_A] = c.target_yaw_rate_std, math.exp(-dt / c.target_yaw_rate_corr_s)
-    row[dyn.P_ULO], row[dyn.P_UHI], row[dyn.P_RMAX] = c.target_speed_min, c.target_speed_max, c.target_yaw_rate_max
-    row[dyn.P_CS_MEAN], row[dyn.P_CS_STD] = c.current_speed, c.current_speed_std
-    row[dyn.P_CS_A] = math.exp(-dt / c.current_corr_s)
-    row[dyn.P_CD_STEP] = c.current_direction_drift * math.sqrt(dt)
-    row[dyn.P_DN:dyn.P_DN + 3] = (c.disturbance_noise_u * vehicle.m, c.disturbance_noise_v * vehicle.m,
-                                  c.disturbance_noise_r * vehicle.I_z)
-    row[dyn.P_DN_A] = math.exp(-dt / c.disturbance_corr_s)
-    row[dyn.P_TH_ALPHA] = 1.0 - math.exp(-dt / c.thruster_tc_s) if c.thruster_tc_s > 0 else 1.0
-    row[dyn.P_TH_RATE] = c.thruster_rate * dt
-    row[dyn.P_PER], row[dyn.P_JIT] = c.update_period_s / dt, c.period_jitter_s / dt
-    row[dyn.P_LAT_KIND] = LATENCY_MODELS.index(c.latency_model)
-    row[dyn.P_LAT_MEAN], row[dyn.P_LAT_SPREAD] = c.latency_s / dt, c.latency_spread_s / dt
-    row[dyn.P_LAT_CORR] = c.latency_corr_s / dt
-    row[dyn.P_LOSS], row[dyn.P_GB] = c.loss_prob, c.burst_p_good_bad
-    row[dyn.P_BG], row[dyn.P_LOSS_BAD] = c.burst_p_bad_good, c.burst_loss_bad
-    row[dyn.P_NS0], row[dyn.P_NSK], row[dyn.P_NPSI] = c.fix_sigma_m, c.fix_sigma_per_m, c.heading_sigma_rad
-    row[dyn.P_NVEL], row[dyn.P_NYAW] = c.velocity_sigma_mps, c.yaw_rate_sigma_radps
+    """Write condition ``c``'s processes, thrusters and link into a param row (in place).
+
+    Also for n rows at once ((n, NP), with ``c`` and ``vehicle`` giving a float or an (n,) array
+    per field: :func:`sample_params_v1_many`)."""
+    def put(col: int, v) -> None:
+        row[..., col] = v
+
+    put(dyn.P_OUU_STD, c.target_speed_std)
+    put(dyn.P_OUU_A, _each(math.exp, -dt / c.target_speed_corr_s))
+    put(dyn.P_OUR_STD, c.target_yaw_rate_std)
+    put(dyn.P_OUR_A, _each(math.exp, -dt / c.target_yaw_rate_corr_s))
+    put(dyn.P_ULO, c.target_speed_min)
+    put(dyn.P_UHI, c.target_speed_max)
+    put(dyn.P_RMAX, c.target_yaw_rate_max)
+    put(dyn.P_CS_MEAN, c.current_speed)
+    put(dyn.P_CS_STD, c.current_speed_std)
+    put(dyn.P_CS_A, _each(math.exp, -dt / c.current_corr_s))
+    put(dyn.P_CD_STEP, c.current_direction_drift * math.sqrt(dt))
+    put(dyn.P_DN, c.disturbance_noise_u * vehicle.m)
+    put(dyn.P_DN + 1, c.disturbance_noise_v * vehicle.m)
+    put(dyn.P_DN + 2, c.disturbance_noise_r * vehicle.I_z)
+    put(dyn.P_DN_A, _each(math.exp, -dt / c.disturbance_corr_s))
+    put(dyn.P_TH_ALPHA, _each(lambda tc: 1.0 - math.exp(-dt / tc) if tc > 0 else 1.0, c.thruster_tc_s))
+    put(dyn.P_TH_RATE, c.thruster_rate * dt)
+    put(dyn.P_PER, c.update_period_s / dt)
+    put(dyn.P_JIT, c.period_jitter_s / dt)
+    put(dyn.P_LAT_KIND, LATENCY_MODELS.index(c.latency_model))
+    put(dyn.P_LAT_MEAN, c.latency_s / dt)
+    put(dyn.P_LAT_SPREAD, c.latency_spread_s / dt)
+    put(dyn.P_LAT_CORR, c.latency_corr_s / dt)
+    put(dyn.P_LOSS, c.loss_prob)
+    put(dyn.P_GB, c.burst_p_good_bad)
+    put(dyn.P_BG, c.burst_p_bad_good)
+    put(dyn.P_LOSS_BAD, c.burst_loss_bad)
+    put(dyn.P_NS0, c.fix_sigma_m)
+    put(dyn.P_NSK, c.fix_sigma_per_m)
+    put(dyn.P_NPSI, c.heading_sigma_rad)
+    put(dyn.P_NVEL, c.velocity_sigma_mps)
+    put(dyn.P_NYAW, c.yaw_rate_sigma_radps)
     return row
 
 
@@ -112,10 +149,7 @@ def params_from_uniforms(config: EnvConfig, u: np.ndarray, *, vehicle: VehiclePa
                      float(tp.yaw_period), config.delay_steps, tuple(cur_x), tuple(cur_y), tuple(lvl.peaks))
     rows = np.empty((u.shape[0], dyn.NP))
     rows[:] = base
-    lo, hi = CURRENT_PERIOD_RANGE
-    rows[:, _PHASE_COLS] = TWO_PI * u[:, _PHASE_U]
-    rows[:, _PERIOD_COLS] = TWO_PI / (lo + (hi - lo) * u[:, _PERIOD_U])
-    return rows
+    return _set_uniforms(rows, u)
 
 
 #: the param columns set from the 12 uniforms: phases (2 pi u) and the current's two tone
@@ -132,18 +166,34 @@ def _base_row(veh: VehicleParams, speed: float, surge_amp: float, surge_period: 
               yaw_period: float, delay_steps: int, cur_x: tuple, cur_y: tuple, peaks: tuple) -> np.ndarray:
     """The part of a v0 param row that does not depend on the uniforms (read-only, cached:
     a reset of a few envs would otherwise spend most of its time rebuilding it)."""
-    row = param_row(vehicle=veh, target_speed=speed, surge_amp=surge_amp, surge_period=surge_period,
-                    yaw_rate_amp=yaw_amp, yaw_period=yaw_period, latency_steps=delay_steps)
+    row = _base_rows(np.zeros(dyn.NP), veh, speed, surge_amp, surge_period, yaw_amp, yaw_period, delay_steps,
+                     cur_x, cur_y, peaks)
+    row.flags.writeable = False
+    return row
+
+
+def _base_rows(rows: np.ndarray, veh, speed, surge_amp, surge_period: float, yaw_amp, yaw_period: float,
+               delay_steps: int, cur_x: tuple, cur_y: tuple, peaks: tuple) -> np.ndarray:
+    """:func:`_base_row` into the zeroed ``rows`` ((NP,) or (n, NP); the vehicle's fields, speed and
+    amplitudes floats or (n,) arrays); returns ``rows``."""
+    _param_rows(rows, veh, speed, surge_amp, surge_period, yaw_amp, yaw_period, delay_steps)
     for col, (a, b) in ((dyn.P_CX, cur_x), (dyn.P_CY, cur_y)):
-        row[col] = 0.5 * (a + b)
-        row[col + 1] = 0.5 * (b - a)
+        rows[..., col] = 0.5 * (a + b)
+        rows[..., col + 1] = 0.5 * (b - a)
     scale = (veh.m, veh.m, veh.I_z)  # Table 3 peaks read per unit mass (docs/paper_notes.md)
     w1, w2 = dyn.DIST_WEIGHT
     for c, (pk, sc) in enumerate(zip(peaks, scale, strict=True)):
-        row[dyn.P_D + 4 * c] = w1 * pk * sc
-        row[dyn.P_D + 4 * c + 2] = w2 * pk * sc
-    row.flags.writeable = False
-    return row
+        rows[..., dyn.P_D + 4 * c] = w1 * pk * sc
+        rows[..., dyn.P_D + 4 * c + 2] = w2 * pk * sc
+    return rows
+
+
+def _set_uniforms(rows: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The columns of ``rows`` (n, NP) set from the episodes' 12 uniforms ``u`` (n, 12)."""
+    lo, hi = CURRENT_PERIOD_RANGE
+    rows[:, _PHASE_COLS] = TWO_PI * u[:, _PHASE_U]
+    rows[:, _PERIOD_COLS] = TWO_PI / (lo + (hi - lo) * u[:, _PERIOD_U])
+    return rows
 
 
 def sample_params_v1(config: EnvConfig, rng: np.random.Generator) -> tuple[np.ndarray, int, float, dict]:
@@ -154,6 +204,9 @@ def sample_params_v1(config: EnvConfig, rng: np.random.Generator) -> tuple[np.nd
     (phases, current periods), one uniform for the Gauss-Markov current's direction, and the
     64-bit seed of the env's in-kernel generator (link, noise, random processes). With no
     ranges, the phases equal those of the v0 env with the same seed.
+
+    The reference (one episode, through :class:`~auv_follow_env.params.Condition`, which
+    validates the draw); the envs use :func:`sample_params_v1_many`, which gives the same values.
     """
     c = config.condition
     assert c is not None
@@ -178,6 +231,66 @@ def sample_params_v1(config: EnvConfig, rng: np.random.Generator) -> tuple[np.nd
     condition = {**c.as_dict(), "mismatch": mismatch, "current_direction_rad": direction,
                  "current_x": current[0], "current_y": current[1]}
     return row, seed, direction, condition
+
+
+def _numeric(v: object) -> bool:
+    """Whether a condition value is a number (or an array of them) rather than an object."""
+    return isinstance(v, np.ndarray) or (isinstance(v, (int, float)) and not isinstance(v, bool))
+
+
+class _Drawn:
+    """The condition of n episodes, field by field: a drawn field's (n,) values, else the fixed value."""
+
+    def __init__(self, c: Condition, drawn: dict[str, np.ndarray]) -> None:
+        self._c, self._drawn = c, drawn
+
+    def __getattr__(self, name: str):
+        d = self.__dict__["_drawn"]
+        return d[name] if name in d else getattr(self.__dict__["_c"], name)
+
+
+def sample_params_v1_many(config: EnvConfig, rngs: list[np.random.Generator]
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, object]]:
+    """:func:`sample_params_v1` for n episodes, env j's from ``rngs[j]`` (the same draws in the
+    same order, and the same arithmetic column by column, so row j equals
+    ``sample_params_v1(config, rngs[j])``'s; tests/test_link.py). The draws' combination is not
+    validated again: ``make_config`` refused any ranges under which a draw could break a rule.
+
+    Returns (rows (n, NP), seeds (n,) int64, directions (n,), condition): the condition maps
+    each field of ``info["condition"]`` to a float, a fixed object, or an (n,) array of draws.
+    """
+    c = config.condition
+    assert c is not None
+    names = [name for name in RANGEABLE if name in config.ranges]
+    n, q = len(rngs), len(names)
+    u = np.empty((n, q + 13))
+    seeds = np.empty(n, dtype=np.int64)
+    for j, rng in enumerate(rngs):
+        u[j] = rng.random(q + 13)  # (the same stream as q + 13 calls of rng.random())
+        seeds[j] = rng.integers(0, 2**63, dtype=np.int64)
+    drawn: dict[str, np.ndarray] = {}
+    for j, name in enumerate(names):
+        lo, hi = config.ranges[name]
+        drawn[name] = lo + (hi - lo) * u[:, j]
+    mismatch = drawn.pop("mismatch", config.mismatch)
+    nom = config.nominal
+    k = 1.0 + mismatch  # VehicleParams.with_mismatch, per episode
+    vehicle = _Drawn(nom, {"X_u": nom.X_u * k, "Y_v": nom.Y_v * k, "N_r": nom.N_r * k})
+    cc = _Drawn(c, drawn)
+    lvl = config.disturbance
+    current = (c.current_x or lvl.current_x, c.current_y or lvl.current_y)
+    tp = config.scenario.target
+    rows = _base_rows(np.zeros((n, dyn.NP)), vehicle, cc.target_speed, cc.target_surge_amp, float(tp.surge_period),
+                      cc.target_yaw_rate_amp, float(tp.yaw_period), config.delay_steps, tuple(current[0]),
+                      tuple(current[1]), tuple(lvl.peaks))
+    _set_uniforms(rows, u[:, q:q + 12])
+    directions = TWO_PI * u[:, q + 12]
+    if cc.current_direction_rad is not None:
+        directions = np.broadcast_to(np.asarray(cc.current_direction_rad, dtype=np.float64), (n,)).copy()
+    link_row(rows, cc, config.dt, vehicle)
+    condition = {**{f.name: getattr(cc, f.name) for f in dataclasses.fields(c)}, "mismatch": mismatch,
+                 "current_direction_rad": directions, "current_x": current[0], "current_y": current[1]}
+    return rows, seeds, directions, condition
 
 
 def queue_capacity(config: EnvConfig) -> int:
@@ -296,7 +409,8 @@ class BatchSim:
             self.err_stage = np.zeros((num_envs, 8))  # the latest samples, 8 per env
             self.rew = np.zeros(num_envs)
             self.term = np.zeros(num_envs, dtype=np.bool_)
-        self.conditions: list[dict | None] = [None] * num_envs
+        #: v1: each env's condition (``info["condition"]``) by field: float64 (N,) or object (N,) arrays
+        self._cond: dict[str, np.ndarray] = {}
         self.sample_times = config.dt * np.arange(1, config.n_steps + 1)
 
     def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
@@ -307,8 +421,9 @@ class BatchSim:
         if len(rngs) != len(idx):
             raise ValueError(f"{len(idx)} envs to reset but {len(rngs)} generators")
         if self.v1:
-            for j, (i, rng) in enumerate(zip(idx, rngs, strict=True)):
-                self.params[i], seeds[j], directions[j], self.conditions[i] = sample_params_v1(self.config, rng)
+            if len(idx):
+                self.params[idx], seeds[:], directions[:], cond = sample_params_v1_many(self.config, rngs)
+                self._store_condition(idx, cond)
         elif len(idx):  # v0: each env's 12 uniforms from its own generator, then the rows at once
             self.params[idx] = params_from_uniforms(self.config, np.array([rng.random(12) for rng in rngs]))
         if self.buf is not None:  # one packed env: the one-lane kernel (kernel_one)
@@ -319,6 +434,33 @@ class BatchSim:
             return
         dyn.reset_kernel(self.state, self.k, self.proc, self.queue, self.rs, self.params, self.cfg, idx, seeds,
                          directions, self.obs, self.truth)
+
+    def _store_condition(self, idx: np.ndarray, cond: dict[str, object]) -> None:
+        if not self._cond:
+            self._cond = {key: np.full(self.num_envs, np.nan) if _numeric(v) else np.full(self.num_envs, None, object)
+                          for key, v in cond.items()}
+        for key, v in cond.items():
+            arr = self._cond[key]
+            if arr.dtype == np.float64:
+                arr[idx] = v
+            else:
+                for i in idx:  # (a tuple is one object per env, not a row to broadcast)
+                    arr[i] = v
+
+    def condition(self, i: int) -> dict[str, object]:
+        """v1: env i's condition of its present episode (every field, with the drawn values)."""
+        if not self._cond:
+            raise ValueError("no v1 episode has started: condition() needs a v1 sim after reset")
+        return {key: float(arr[i]) if arr.dtype == np.float64 else arr[i] for key, arr in self._cond.items()}
+
+    def conditions(self, mask: np.ndarray) -> dict[str, np.ndarray]:
+        """v1: the conditions of the envs in ``mask`` by field (NaN / None elsewhere)."""
+        out = {}
+        for key, arr in self._cond.items():
+            a = arr.copy()
+            a[~mask] = np.nan if arr.dtype == np.float64 else None
+            out[key] = a
+        return out
 
     def step(self, action_flat: np.ndarray) -> int:
         """Advance all envs; returns -1 or the index of an env with a non-finite action."""

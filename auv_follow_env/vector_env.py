@@ -340,16 +340,7 @@ class AUVFollowVectorEnv(VectorEnv):
 
     def _conditions(self, mask: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """v1: the conditions drawn for the envs in ``mask`` (NaN / None elsewhere), with the mask."""
-        sim = self._sim
-        first = next(c for c in sim.conditions if c is not None)
-        out: dict[str, np.ndarray] = {}
-        for key, value in first.items():
-            numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
-            arr = np.full(self.num_envs, np.nan) if numeric else np.full(self.num_envs, None, dtype=object)
-            for i in np.flatnonzero(mask):
-                arr[i] = sim.conditions[i][key]
-            out[key] = arr
-        return out, mask.copy()
+        return self._sim.conditions(mask), mask.copy()
 
     def _link_stats(self, done: np.ndarray) -> dict[str, np.ndarray]:
         """v1: packet counts of the episodes that ended (-1 elsewhere)."""

@@ -260,11 +260,17 @@ def _link_all(state, k, proc, queue, rs, p, cfg, reps):
 
 
 @njit(cache=True)
-def _processes_all(proc, rs, p, reps):
-    """One control step of every env's random processes (the draws where a std > 0)."""
+def _processes_all(proc, rs, p, reps, fast):
+    """One control step of every env's random processes (the draws where a std > 0), block by
+    block as the step runs them (:func:`~auv_follow_env.dynamics.update_processes_block`)."""
+    n = proc.shape[0]
+    wk = dyn.work_buffer(True)
     for _ in range(reps):
-        for i in range(proc.shape[0]):
-            dyn.update_processes(proc, rs, p, i)
+        for a in range(0, n, dyn.BLOCK):
+            m = min(dyn.BLOCK, n - a)
+            for b in range(m):
+                wk[dyn.K_ENV * dyn.BLOCK + b] = a + b
+            dyn.update_processes_block(proc, rs, p, m, wk, fast)
 
 
 @njit(cache=True)
@@ -341,7 +347,8 @@ def profile(args: Args, n: int, env_id: str | None = None) -> dict[str, float]:
     proc, queue, rs = sim.proc.copy(), sim.queue.copy(), sim.rs.copy()
     out["link"] = _ns_per_env(lambda r: _link_all(sim.state, sim.k, proc, queue, rs, sim.params, sim.cfg, r),
                               n, 1, b, rp)
-    out["processes"] = _ns_per_env(lambda r: _processes_all(proc, rs, sim.params, r), n, 1, b, rp)
+    out["processes"] = _ns_per_env(lambda r: _processes_all(proc, rs, sim.params, r, sim.cfg[dyn.C_FAST] != 0.0),
+                                   n, 1, b, rp)
     venv.close()
     return out
 
@@ -551,7 +558,7 @@ def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after:
                  ("sin/cos of the new step (ten tones, both headings: `refresh_trig_block`, SIMD)", "fast_block"),
                  ("observation, truth and error (`_observe`, with the cached values)", "observe"),
                  ("link: send when due, arrivals (`link_tick`)", "link"),
-                 ("random processes: the step's draws (`update_processes`)", "processes"),
+                 ("random processes: the step's draws (`update_processes_block`)", "processes"),
                  ("rest of `step_kernel`: thrusters, reward, termination, gathers, loops", "rest"),
                  ("Python shell: validation, copies, info dict, autoreset (env step - `step_kernel`)", "shell"))
         for q in (p, tp):

@@ -68,7 +68,7 @@ def record(args: Args) -> dict[str, np.ndarray]:
     a = np.array(rows)
     return {"t": a[:, 0], "tx": a[:, 1], "ty": a[:, 2], "x": a[:, 3], "y": a[:, 4], "fx": a[:, 5], "fy": a[:, 6],
             "age": a[:, 7], "new": a[:, 8], "err": a[:, 9], "sends": np.array(sends).reshape(-1, 4),
-            "stats": cond, "condition": env.unwrapped._sim.conditions[0]}
+            "stats": cond, "condition": env.unwrapped._sim.condition(0)}
 
 
 def plot(d: dict, args: Args) -> None:

@@ -69,6 +69,30 @@ def test_fast_sincos_exact_points_and_quadrants():
         assert s[0] == pytest.approx(es, abs=1e-14) and c[0] == pytest.approx(ec, abs=1e-14), k
 
 
+@njit
+def _log_all(x, out):
+    for i in range(x.shape[0]):
+        out[i] = dyn.fast_log(x[i])
+
+
+@pytest.mark.skipif(not HAS_LONGDOUBLE, reason="needs an extended-precision long double reference")
+def test_fast_log_is_within_one_ulp():
+    """The Box-Muller radius' logarithm (uniforms in (0, 1], and any positive normal double)."""
+    rng = np.random.default_rng(11)
+    x = np.concatenate([1.0 - rng.random(200_000),  # the generator's u1
+                        1.0 - rng.uniform(0, 1e-6, 20_000),  # near 1, where log is near 0
+                        np.exp(rng.uniform(-700.0, 700.0, 50_000)),
+                        [2.0 ** -53, 0.5, 2.0, np.sqrt(2.0), np.sqrt(0.5), np.nextafter(1.0, 0.0)]])
+    out = np.empty_like(x)
+    _log_all(x, out)
+    assert _ulps(out, np.log(x.astype(np.longdouble))).max() <= 1.0
+    one = np.empty(1)
+    _log_all(np.ones(1), one)
+    assert one[0] == 0.0  # log 1 = 0 exactly (a uniform of 0 gives the radius 0)
+    _log_all(np.array([0.25]), one)
+    assert one[0] == -2.0 * np.log(2.0)  # exact in two roundings: -2 ln 2 rounds once
+
+
 def test_sincos_rows_fall_back_to_libm_for_huge_arguments():
     x = np.array([0.5, 3.0e7, -2.0e6, 1.0])  # two lanes beyond FAST_TRIG_MAX
     s, c = _rows(x, True)

@@ -26,12 +26,13 @@ import sys
 import gymnasium as gym
 import numpy as np
 import pytest
+from numba import njit
 
 import auv_follow_env  # noqa: F401
 from auv_follow_env import dynamics as dyn
 from auv_follow_env.layout import OBS_DIM_V1, OBS_INDEX_V1
 from auv_follow_env.params import make_config
-from auv_follow_env.tiers import TIER_NAMES, TIERS, TRAIN_SEED_LIMIT, check_training_seeds
+from auv_follow_env.tiers import TIER_NAMES, TIERS, TRAIN_SEED_LIMIT, check_training_seeds, make_tier_config
 from controllers import make_controller
 
 V1 = "AUVFollow-v1"
@@ -79,6 +80,89 @@ def test_splitmix64_matches_the_reference_sequence():
     assert abs(u.mean() - 0.5) < 4 * math.sqrt(1 / 12 / u.size)
     z = dyn.draw_normals(np.array([7], dtype=np.uint64), np.zeros((1, dyn.NR)), 200_000)
     assert abs(z.mean()) < 4 / math.sqrt(z.size) and abs(z.var() - 1.0) < 4 * math.sqrt(2 / z.size)
+
+
+@njit
+def _block_processes(proc, rs, p, steps, fast):
+    """update_processes_block over all envs (blocks of BLOCK lanes) for ``steps`` control steps."""
+    n = proc.shape[0]
+    wk = dyn.work_buffer(True)
+    for _ in range(steps):
+        for a in range(0, n, dyn.BLOCK):
+            m = min(dyn.BLOCK, n - a)
+            for b in range(m):
+                wk[dyn.K_ENV * dyn.BLOCK + b] = a + b
+            dyn.update_processes_block(proc, rs, p, m, wk, fast)
+
+
+@njit
+def _scalar_processes(proc, rs, p, steps):
+    for _ in range(steps):
+        for i in range(proc.shape[0]):
+            dyn.update_processes(proc, rs, p, i)
+
+
+def _process_rows(n: int) -> np.ndarray:
+    """Param rows where each env draws a different subset of the seven normals (0 to 7 per step,
+    so the Box-Muller pairs' cached second value is used at every phase)."""
+    rng = np.random.default_rng(5)
+    p = np.zeros((n, dyn.NP))
+    stds = (dyn.P_OUU_STD, dyn.P_OUR_STD, dyn.P_CS_STD, dyn.P_CD_STEP, dyn.P_DN, dyn.P_DN + 1, dyn.P_DN + 2)
+    for i in range(n):
+        on = [(i >> c) & 1 for c in range(7)]  # envs 0..127: every subset
+        for c, col in enumerate(stds):
+            p[i, col] = on[c] * rng.uniform(0.1, 1.0)
+    for col in (dyn.P_OUU_A, dyn.P_OUR_A, dyn.P_CS_A, dyn.P_DN_A):
+        p[:, col] = rng.uniform(0.5, 0.99, n)
+    p[:, dyn.P_CS_MEAN] = 0.1
+    return p
+
+
+def test_block_processes_draw_what_the_per_env_reference_draws():
+    """The step's block version of the random processes (SIMD logarithms and sines) against the
+    per-env reference update_processes (scalar Box-Muller, libm): with libm the same bits, with the
+    SIMD functions the same uniforms (the generators end in the same state) and normals within
+    rounding."""
+    n, steps = 150, 9
+    p = _process_rows(n)
+    rs0 = np.arange(1, n + 1, dtype=np.uint64) * np.uint64(7919)
+    proc0 = np.zeros((n, dyn.NR))
+    proc0[:, dyn.R_CDIR] = np.linspace(-3.0, 3.0, n)
+    ref_proc, ref_rs = proc0.copy(), rs0.copy()
+    _scalar_processes(ref_proc, ref_rs, p, steps)
+    assert np.count_nonzero(ref_proc[:, dyn.R_GAUSS_HAS]) > 10  # the cache is exercised
+    libm_proc, libm_rs = proc0.copy(), rs0.copy()
+    _block_processes(libm_proc, libm_rs, p, steps, False)
+    np.testing.assert_array_equal(libm_proc, ref_proc)
+    np.testing.assert_array_equal(libm_rs, ref_rs)
+    simd_proc, simd_rs = proc0.copy(), rs0.copy()
+    _block_processes(simd_proc, simd_rs, p, steps, True)
+    np.testing.assert_array_equal(simd_rs, ref_rs)
+    np.testing.assert_array_equal(simd_proc[:, dyn.R_GAUSS_HAS], ref_proc[:, dyn.R_GAUSS_HAS])
+    np.testing.assert_allclose(simd_proc, ref_proc, rtol=1e-13, atol=1e-15)
+    assert not np.array_equal(simd_proc, ref_proc)  # a different computation, not libm again
+
+
+def test_batched_v1_draws_equal_the_one_episode_reference():
+    """The envs draw n episodes' parameters at once (sample_params_v1_many); the reference draws
+    one episode through a validated Condition (sample_params_v1): the same rows bit for bit, the
+    same kernel seeds, current directions and reported conditions, on every tier and with ranges
+    over the fields whose columns need exp (correlation times, thruster lag) and the direction."""
+    from auv_follow_env.sim import sample_params_v1, sample_params_v1_many
+
+    configs = [make_tier_config(t) for t in TIER_NAMES] + [
+        make_config("S2", version="v1", thruster_tc_s=(0.0, 0.5), current_direction_rad=(-1.0, 1.0),
+                    latency_corr_s=(1.0, 5.0), target_speed_corr_s=(5.0, 30.0), disturbance_noise_r=(0.0, 0.02))]
+    for config in configs:
+        rows, seeds, directions, cond = sample_params_v1_many(config, [np.random.default_rng(s) for s in range(64)])
+        for j in range(64):
+            row, seed, direction, c = sample_params_v1(config, np.random.default_rng(j))
+            np.testing.assert_array_equal(rows[j], row)
+            assert (seeds[j], directions[j]) == (seed, direction)
+            assert set(cond) == set(c)
+            for key, v in c.items():
+                got = cond[key][j] if isinstance(cond[key], np.ndarray) else cond[key]
+                assert got == v, (key, got, v)
 
 
 # --- loss ----------------------------------------------------------------------------------
