@@ -736,6 +736,8 @@ K_U2 = K_F0 + 4  # pair j's angle 2 pi u2
 K_ZS, K_ZC = K_F0 + 8, K_F0 + 12  # sin and cos of pair j's angle
 K_CD, K_CDS, K_CDC = K_F0 + 16, K_F0 + 17, K_F0 + 18  # the current's direction, its sin and cos
 K_ENV = K_F0 + 19  # the lane's env index (set by the caller)
+K_DP, K_DPS, K_DPC = K_F0, K_F0 + 1, K_F0 + 2  # after the processes: the observation's relative
+#   heading (held packet's minus the follower's), its sin and cos
 _NPAIR = 4  # at most seven normals per env and step: four pairs
 
 # fdlibm's e_log.c (Sun Microsystems, 1993; freely distributable): x = 2^k (1 + f) with 1 + f in
@@ -1125,8 +1127,22 @@ def _observe(state, k, proc, p, cfg, i, obs, truth):
     """Fill obs[i] (what the follower has) and truth[i] (evaluation only); return error.
 
     The tones and heading cos/sin come from env i's cache (:func:`refresh_trig`)."""
-    dt = cfg[C_DT]
     refresh_trig(state, k, proc, p, cfg, i)
+    dpsi = proc[i, R_HX + 2] - state[i, 2]
+    if cfg[C_FAST] != 0.0 and abs(dpsi) <= FAST_TRIG_MAX:
+        sdp, cdp = fast_sincos(dpsi)
+    else:
+        cdp = math.cos(dpsi)
+        sdp = math.sin(dpsi)
+    return _observe_dp(state, k, proc, p, cfg, i, obs, truth, cdp, sdp)
+
+
+@njit(cache=True, inline="always")
+def _observe_dp(state, k, proc, p, cfg, i, obs, truth, cdp, sdp):
+    """:func:`_observe` given (cos, sin) of the held packet's heading minus the follower's,
+    ``proc[i, R_HX + 2] - state[i, 2]`` (computed for a block at once by the step), with env i's
+    cached values current."""
+    dt = cfg[C_DT]
     pdx = cfg[C_PDX]
     pdy = cfg[C_PDY]
     x, y, ps = state[i, 0], state[i, 1], state[i, 2]
@@ -1152,12 +1168,6 @@ def _observe(state, k, proc, p, cfg, i, obs, truth):
         ry = yd + sd * pdx + cd * pdy - y
         obs[i, 5] = c * ex + s * ey
         obs[i, 6] = -s * ex + c * ey
-        dpsi = psd - ps
-        if cfg[C_FAST] != 0.0 and abs(dpsi) <= FAST_TRIG_MAX:
-            sdp, cdp = fast_sincos(dpsi)
-        else:
-            cdp = math.cos(dpsi)
-            sdp = math.sin(dpsi)
         obs[i, 7] = cdp
         obs[i, 8] = sdp
         obs[i, 9] = proc[i, R_HX + 3]
@@ -1219,6 +1229,7 @@ _update_processes_r = _called(update_processes)
 _update_processes_block_r = _called(update_processes_block)
 _load_random_forcing_r = _called(_load_random_forcing)
 _observe_r = _called(_observe)
+_observe_dp_r = _called(_observe_dp)
 _thrusters_r = _called(thrusters)
 _refresh_trig_r = _called(refresh_trig)
 _refresh_trig_block_r = _called(refresh_trig_block)
@@ -1360,12 +1371,16 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stag
         update_processes_block(proc, rs, p, m, wk, fast)
         refresh_trig_block(k, proc, cfg, a, m, wk, fast)  # the new step's libm values, used from here on
         for b in range(m):
+            link_tick(state, proc, queue, rs, p, cfg, a + b, k[a + b])
+        for b in range(m):  # the observation's relative heading, the block's sin/cos at once
+            wk[_ix(K_DP, b)] = proc[a + b, R_HX + 2] - state[a + b, 2]
+        _sincos_rows(wk, K_DP, K_DPS, K_DPC, m, fast)
+        for b in range(m):
             i = a + b
             a0 = min(1.0, max(-1.0, float(action[3 * i])))
             a1 = min(1.0, max(-1.0, float(action[3 * i + 1])))
             a2 = min(1.0, max(-1.0, float(action[3 * i + 2])))
-            link_tick(state, proc, queue, rs, p, cfg, i, k[i])
-            err = _observe(state, k, proc, p, cfg, i, obs, truth)
+            err = _observe_dp(state, k, proc, p, cfg, i, obs, truth, wk[_ix(K_DPC, b)], wk[_ix(K_DPS, b)])
             ks = k[i] - 1  # this sample's index, and its column in err_stage
             slot = ks & 7
             if ks < err_hist.shape[1]:

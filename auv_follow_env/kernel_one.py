@@ -148,7 +148,7 @@ def _rebound(disp, **subs):
 #: dynamics.step_range, the same code, calling the one-lane block functions, and calling (not
 #: inlining) the per-env functions that the reset calls too: compiled once for both (cold start)
 _step_range_one = _rebound(dyn.step_range, advance_block=_advance_one, gather_block=_gather_one,
-                           link_tick=dyn._link_tick_r, _observe=dyn._observe_r,
+                           link_tick=dyn._link_tick_r, _observe_dp=dyn._observe_dp_r,
                            update_processes_block=dyn._update_processes_block_r, thrusters=dyn._thrusters_r,
                            refresh_trig=dyn._refresh_trig_r, refresh_trig_block=dyn._refresh_trig_block_r,
                            _load_random_forcing=dyn._load_random_forcing_r)

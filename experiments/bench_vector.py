@@ -245,10 +245,21 @@ def _refresh_block_all(state, k, proc, p, cfg, reps, fast):
 
 @njit(cache=True)
 def _observe_all(state, k, proc, p, cfg, obs, truth, reps):
-    """The observation, truth and error of every env (libm values cached): idempotent."""
+    """The observation, truth and error of every env (libm values cached), block by block as the
+    step computes them (the relative heading's sin/cos for a block at once): idempotent."""
+    n = state.shape[0]
+    wk = dyn.work_buffer(True)
+    fast = cfg[dyn.C_FAST] != 0.0
+    B = dyn.BLOCK
     for _ in range(reps):
-        for i in range(state.shape[0]):
-            dyn._observe(state, k, proc, p, cfg, i, obs, truth)
+        for a in range(0, n, B):
+            m = min(B, n - a)
+            for b in range(m):
+                wk[dyn.K_DP * B + b] = proc[a + b, dyn.R_HX + 2] - state[a + b, 2]
+            dyn._sincos_rows(wk, dyn.K_DP, dyn.K_DPS, dyn.K_DPC, m, fast)
+            for b in range(m):
+                dyn._observe_dp(state, k, proc, p, cfg, a + b, obs, truth, wk[dyn.K_DPC * B + b],
+                                wk[dyn.K_DPS * B + b])
 
 
 @njit(cache=True)
@@ -556,7 +567,7 @@ def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after:
                   f"| part | {args.env_id} ns | share | {args.tier_id} ns | share |", "|---|---|---|---|---|"]
         parts = (("RK4 of follower and target (structure-of-arrays blocks, start values cached)", "advance"),
                  ("sin/cos of the new step (ten tones, both headings: `refresh_trig_block`, SIMD)", "fast_block"),
-                 ("observation, truth and error (`_observe`, with the cached values)", "observe"),
+                 ("observation, truth and error (`_observe_dp`, with the cached values)", "observe"),
                  ("link: send when due, arrivals (`link_tick`)", "link"),
                  ("random processes: the step's draws (`update_processes_block`)", "processes"),
                  ("rest of `step_kernel`: thrusters, reward, termination, gathers, loops", "rest"),
