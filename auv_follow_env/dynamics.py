@@ -1160,7 +1160,7 @@ def _observe_dp(state, k, proc, p, cfg, i, obs, truth, cdp, sdp):
     if proc[i, R_HAS] != 0.0:
         # the newest received packet (v0: the target tau ago, eq. (12))
         xd, yd = proc[i, R_HX], proc[i, R_HX + 1]
-        cd = proc[i, R_HC]  # cos/sin of psd, computed when the packet was sent
+        cd = proc[i, R_HC]  # cos/sin of its heading, computed when the packet was sent
         sd = proc[i, R_HS]
         ex = xd - x
         ey = yd - y
