@@ -487,6 +487,15 @@ def _heading_values(wk, m, fast):
     _sincos_rows(wk, K_ST + 8, K_STT, K_CT, m, fast)
 
 
+@njit(cache=True)
+def _trig_values(wk, m, fast):
+    """:func:`_tone_values` and :func:`_heading_values`: the sin/cos at a step's start, for a block.
+    Not inlined (called once per block): one compiled copy for the step's refresh, the reset's
+    warm-up and the single env (cold start)."""
+    _tone_values(wk, m, fast)
+    _heading_values(wk, m, fast)
+
+
 @njit(cache=True, inline="always")
 def _gather_lane(state, p, i, wk, b):
     """Copy env i of state (N, 9) and params (N, NP) into lane b of the block's rows."""
@@ -927,8 +936,7 @@ def refresh_trig_block(k, proc, cfg, a, m, wk, fast):
     dt = cfg[C_DT]
     for b in range(m):
         wk[_ix(K_T0, b)] = k[a + b] * dt
-    _tone_values(wk, m, fast)  # (the rotation rows are free after advance_block)
-    _heading_values(wk, m, fast)
+    _trig_values(wk, m, fast)  # (the rotation rows are free after advance_block)
     for b in range(m):
         i = a + b
         for j in range(10):
@@ -1122,11 +1130,14 @@ def thrusters(proc, p, cfg, i, fu, fv, fr):
     return fu, fv, fr
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _observe(state, k, proc, p, cfg, i, obs, truth):
     """Fill obs[i] (what the follower has) and truth[i] (evaluation only); return error.
 
-    The tones and heading cos/sin come from env i's cache (:func:`refresh_trig`)."""
+    The tones and heading cos/sin come from env i's cache (:func:`refresh_trig`). For the reset
+    (once per episode; the step computes the relative heading's sin/cos a block at a time and
+    calls :func:`_observe_dp` itself), so it calls the compiled ``_observe_dp_r`` shared with the
+    single env's step instead of inlining it (cold start)."""
     refresh_trig(state, k, proc, p, cfg, i)
     dpsi = proc[i, R_HX + 2] - state[i, 2]
     if cfg[C_FAST] != 0.0 and abs(dpsi) <= FAST_TRIG_MAX:
@@ -1134,7 +1145,7 @@ def _observe(state, k, proc, p, cfg, i, obs, truth):
     else:
         cdp = math.cos(dpsi)
         sdp = math.sin(dpsi)
-    return _observe_dp(state, k, proc, p, cfg, i, obs, truth, cdp, sdp)
+    return _observe_dp_r(state, k, proc, p, cfg, i, obs, truth, cdp, sdp)
 
 
 @njit(cache=True, inline="always")
@@ -1228,7 +1239,7 @@ _link_tick_r = _called(link_tick)
 _update_processes_r = _called(update_processes)
 _update_processes_block_r = _called(update_processes_block)
 _load_random_forcing_r = _called(_load_random_forcing)
-_observe_r = _called(_observe)
+_observe_r = _observe  # (not inlined anywhere)
 _observe_dp_r = _called(_observe_dp)
 _thrusters_r = _called(thrusters)
 _refresh_trig_r = _called(refresh_trig)
@@ -1270,8 +1281,7 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
             for b in range(m):
                 _load_random_forcing_r(proc, idx[n0 + b], wk, b)
                 wk[_ix(K_T0, b)] = step * dt
-            _tone_values(wk, m, fast)
-            _heading_values(wk, m, fast)
+            _trig_values(wk, m, fast)
             advance_block(wk, dt, nsub, m, fast)
             for b in range(m):
                 i = idx[n0 + b]
