@@ -480,7 +480,7 @@ def _tone_values(wk, m, fast):
         _sincos_rows(wk, K_OUT, K_S + j, K_C + j, m, fast)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _heading_values(wk, m, fast):
     """cos/sin of both headings (state rows K_ST + 2, K_ST + 8) into rows K_C0, K_S0, K_CT, K_STT."""
     _sincos_rows(wk, K_ST + 2, K_S0, K_C0, m, fast)
@@ -571,7 +571,7 @@ def _rk4_block_lane(wk, h, b, exact):
                     _load7(wk, K_F0, b), _load7(wk, K_FM, b), _load7(wk, K_F1, b), exact)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _rotation_factors(wk, hh, m):
     """cos/sin of each tone's half-substep angle omega * hh into rows K_RC.., K_RS..: small-angle
     polynomials, libm for the lanes beyond SMALL_ANGLE. A tone's row is recomputed only if some
