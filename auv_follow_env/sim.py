@@ -293,6 +293,105 @@ def sample_params_v1_many(config: EnvConfig, rngs: list[np.random.Generator]
     return rows, seeds, directions, condition
 
 
+class _V1Episodes:
+    """The v1 episodes of N envs: what :meth:`BatchSim.reset` draws, and each env's condition.
+
+    Each env's episodes are drawn from its own generator, in order. With ``ahead`` (the vector
+    env's BatchSim) an env's next episode is drawn ahead: after a reset its draw waits in a
+    list of pending envs, and once the list is long (N / 8 envs, at most 256) all of them are
+    drawn in one call of :func:`sample_params_v1_many`, so that autoresets of a few envs per
+    step do not each pay that call's fixed cost. A draw made ahead is used only if the env
+    resets with the same generator object it came from (a new seed makes a new generator:
+    then the episode is drawn at the reset), so every env gets the same episodes, in the
+    same order, as if each were drawn at its reset (tests/test_link.py). Without ``ahead``
+    (the single env, whose generator is Gymnasium's ``np_random``) nothing is drawn early.
+    """
+
+    def __init__(self, config: EnvConfig, n: int, *, ahead: bool) -> None:
+        self.config, self.n, self.ahead = config, n, ahead
+        self.batch = max(1, min(256, n // 8))  #: pending envs that trigger a draw ahead
+        self.keys: list[str] = []  #: the condition's fields, in info["condition"]'s order
+        self.numeric: list[str] = []  #: those with numbers (columns of cond)
+        self.fixed: dict[str, object] = {}  #: the others (the same for every episode of a config)
+        self.cond: np.ndarray | None = None  #: (N, len(numeric)): each env's present condition
+        self.gen: list[np.random.Generator | None] = [None] * n  #: each env's generator
+        self.ready = np.zeros(n, dtype=np.bool_)  #: whether the env's next episode is drawn
+        self.pending: list[int] = []
+        self.next_rows = np.zeros((n, dyn.NP))
+        self.next_seeds = np.zeros(n, dtype=np.int64)
+        self.next_dirs = np.zeros(n)
+        self.next_cond: np.ndarray | None = None
+
+    def _draw(self, rngs: list[np.random.Generator]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        rows, seeds, dirs, cond = sample_params_v1_many(self.config, rngs)
+        if not self.keys:
+            self.keys = list(cond)
+            self.numeric = [k for k in cond if _numeric(cond[k])]
+            self.fixed = {k: v for k, v in cond.items() if not _numeric(v)}
+            self.cond = np.full((self.n, len(self.numeric)), np.nan)
+            self.next_cond = np.full((self.n, len(self.numeric)), np.nan)
+        block = np.empty((len(rngs), len(self.numeric)))
+        for j, key in enumerate(self.numeric):
+            block[:, j] = cond[key]
+        return rows, seeds, dirs, block
+
+    def start(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The new episodes of envs ``idx`` (env idx[j]'s from rngs[j]): (rows, seeds, directions);
+        records their conditions."""
+        have = np.array([self.ready[i] and self.gen[i] is g for i, g in zip(idx.tolist(), rngs, strict=True)],
+                        dtype=np.bool_)
+        rows = np.empty((len(idx), dyn.NP))
+        seeds = np.empty(len(idx), dtype=np.int64)
+        dirs = np.empty(len(idx))
+        need = np.flatnonzero(~have)
+        if need.size:
+            r, s, d, c = self._draw([rngs[j] for j in need])
+            rows[need], seeds[need], dirs[need] = r, s, d
+            self.cond[idx[need]] = c
+        if have.any():
+            took = idx[have]
+            rows[have], seeds[have], dirs[have] = self.next_rows[took], self.next_seeds[took], self.next_dirs[took]
+            self.cond[took] = self.next_cond[took]
+        self.ready[idx] = False
+        for i, g in zip(idx.tolist(), rngs, strict=True):
+            self.gen[i] = g
+        if self.ahead:
+            self.pending.extend(idx.tolist())
+            if len(self.pending) >= self.batch:
+                self._draw_ahead()
+        return rows, seeds, dirs
+
+    def _draw_ahead(self) -> None:
+        """The next episode of every pending env (whose present one is drawn), in one call."""
+        todo = np.array(sorted({i for i in self.pending if not self.ready[i]}), dtype=np.int64)
+        self.pending = []
+        if todo.size:
+            r, s, d, c = self._draw([self.gen[i] for i in todo.tolist()])
+            self.next_rows[todo], self.next_seeds[todo], self.next_dirs[todo], self.next_cond[todo] = r, s, d, c
+            self.ready[todo] = True
+
+    def condition(self, i: int) -> dict[str, object]:
+        col = {key: j for j, key in enumerate(self.numeric)}
+        return {key: float(self.cond[i, col[key]]) if key in col else self.fixed[key] for key in self.keys}
+
+    def conditions(self, mask: np.ndarray) -> dict[str, np.ndarray]:
+        ids = np.flatnonzero(mask)
+        block = np.full(self.cond.shape, np.nan)
+        block[ids] = self.cond[ids]
+        col = {key: j for j, key in enumerate(self.numeric)}
+        out = {}
+        for key in self.keys:
+            if key in col:
+                out[key] = block[:, col[key]]
+            else:
+                arr = np.empty(self.n, dtype=object)  # (None everywhere)
+                one = np.empty(1, dtype=object)
+                one[0] = self.fixed[key]  # (a tuple is one object per env, not a row to broadcast)
+                arr[mask] = one
+                out[key] = arr
+        return out
+
+
 def queue_capacity(config: EnvConfig) -> int:
     """Packets that can be in flight at once (v0: tau / dt + 2; v1: from the largest latency and
     the shortest period). When the queue is full the oldest packet is dropped (counted)."""
@@ -374,9 +473,14 @@ class BatchSim:
     both headings, the observation's relative heading) with
     :func:`~auv_follow_env.dynamics.fast_sincos` in SIMD loops; ``"libm"`` with glibc's scalar
     calls. Within 1 ULP of each other, not bit-identical (see the env docs).
+
+    ``draw_ahead`` (v1; the vector env): draw each env's next episode ahead, several envs per
+    call (:class:`_V1Episodes`; the same episodes in the same order, but the generators passed
+    to :meth:`reset` advance before the episode starts: only for generators nobody else uses).
     """
 
-    def __init__(self, config: EnvConfig, num_envs: int, sincos: str = "simd", *, packed: bool = False) -> None:
+    def __init__(self, config: EnvConfig, num_envs: int, sincos: str = "simd", *, packed: bool = False,
+                 draw_ahead: bool = False) -> None:
         self.config = config
         self.num_envs = num_envs
         self.sincos = check_sincos(sincos)
@@ -409,8 +513,8 @@ class BatchSim:
             self.err_stage = np.zeros((num_envs, 8))  # the latest samples, 8 per env
             self.rew = np.zeros(num_envs)
             self.term = np.zeros(num_envs, dtype=np.bool_)
-        #: v1: each env's condition (``info["condition"]``) by field: float64 (N,) or object (N,) arrays
-        self._cond: dict[str, np.ndarray] = {}
+        #: v1: the envs' episode draws and conditions (a vector env's next episodes drawn ahead)
+        self._episodes = _V1Episodes(config, num_envs, ahead=draw_ahead) if self.v1 else None
         self.sample_times = config.dt * np.arange(1, config.n_steps + 1)
 
     def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
@@ -422,8 +526,7 @@ class BatchSim:
             raise ValueError(f"{len(idx)} envs to reset but {len(rngs)} generators")
         if self.v1:
             if len(idx):
-                self.params[idx], seeds[:], directions[:], cond = sample_params_v1_many(self.config, rngs)
-                self._store_condition(idx, cond)
+                self.params[idx], seeds[:], directions[:] = self._episodes.start(idx, rngs)
         elif len(idx):  # v0: each env's 12 uniforms from its own generator, then the rows at once
             self.params[idx] = params_from_uniforms(self.config, np.array([rng.random(12) for rng in rngs]))
         if self.buf is not None:  # one packed env: the one-lane kernel (kernel_one)
@@ -435,32 +538,17 @@ class BatchSim:
         dyn.reset_kernel(self.state, self.k, self.proc, self.queue, self.rs, self.params, self.cfg, idx, seeds,
                          directions, self.obs, self.truth)
 
-    def _store_condition(self, idx: np.ndarray, cond: dict[str, object]) -> None:
-        if not self._cond:
-            self._cond = {key: np.full(self.num_envs, np.nan) if _numeric(v) else np.full(self.num_envs, None, object)
-                          for key, v in cond.items()}
-        for key, v in cond.items():
-            arr = self._cond[key]
-            if arr.dtype == np.float64:
-                arr[idx] = v
-            else:
-                for i in idx:  # (a tuple is one object per env, not a row to broadcast)
-                    arr[i] = v
-
     def condition(self, i: int) -> dict[str, object]:
         """v1: env i's condition of its present episode (every field, with the drawn values)."""
-        if not self._cond:
-            raise ValueError("no v1 episode has started: condition() needs a v1 sim after reset")
-        return {key: float(arr[i]) if arr.dtype == np.float64 else arr[i] for key, arr in self._cond.items()}
+        if self._episodes is None or self._episodes.cond is None:
+            raise ValueError("condition() needs a v1 sim after its first reset")
+        return self._episodes.condition(i)
 
     def conditions(self, mask: np.ndarray) -> dict[str, np.ndarray]:
-        """v1: the conditions of the envs in ``mask`` by field (NaN / None elsewhere)."""
-        out = {}
-        for key, arr in self._cond.items():
-            a = arr.copy()
-            a[~mask] = np.nan if arr.dtype == np.float64 else None
-            out[key] = a
-        return out
+        """v1: the conditions of the envs in ``mask`` by field, (N,) arrays (NaN / None elsewhere)."""
+        if self._episodes is None or self._episodes.cond is None:
+            raise ValueError("conditions() needs a v1 sim after its first reset")
+        return self._episodes.conditions(mask)
 
     def step(self, action_flat: np.ndarray) -> int:
         """Advance all envs; returns -1 or the index of an env with a non-finite action."""

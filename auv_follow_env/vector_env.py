@@ -191,7 +191,7 @@ class AUVFollowVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
 
-        self._sim = BatchSim(self.config, self.num_envs, sincos)
+        self._sim = BatchSim(self.config, self.num_envs, sincos, draw_ahead=True)  # (its generators are ours)
         #: how the step's sin/cos are computed: "simd" (default) or "libm" (the ``sincos`` keyword)
         self.sincos = sincos
         #: former name: ``sincos == "simd"``

@@ -422,6 +422,40 @@ def test_vector_env_equals_single_env_on_every_tier(tier):
             pending[i] = te or tr
 
 
+def test_episodes_drawn_ahead_are_the_ones_each_env_would_draw():
+    """The vector env draws each env's next episode ahead, several envs per call (BatchSim's
+    draw_ahead); every env still plays its own generator's episodes in order, as a single env
+    seeded alike does, also after some envs are reseeded (their draws made ahead are dropped)."""
+    env_id, n, steps, kw = TIERS["Hard"].env_id, 24, 300, dict(max_distance_m=1.5)  # short episodes
+    vec = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", **kw)
+    singles = [gym.make(env_id, **kw) for _ in range(n)]
+    vobs, _ = vec.reset(seed=100)
+    for i, e in enumerate(singles):
+        np.testing.assert_array_equal(vobs[i], e.reset(seed=100 + i)[0])
+    actions = np.random.default_rng(1).uniform(-1, 1, (steps, n, 3)).astype(np.float32)
+    pending, ends = [False] * n, 0
+    for k in range(steps):
+        if k == steps // 2:  # reseed the even envs
+            mask = np.arange(n) % 2 == 0
+            vobs, _ = vec.reset(seed=[500 + i if mask[i] else None for i in range(n)], options={"reset_mask": mask})
+            for i in np.flatnonzero(mask):
+                np.testing.assert_array_equal(vobs[i], singles[i].reset(seed=500 + i)[0])
+                pending[i] = False
+            continue
+        vobs, vrew, vterm, vtrunc, _ = vec.step(actions[k])
+        for i, e in enumerate(singles):
+            if pending[i]:
+                o, _ = e.reset()
+                pending[i] = False
+            else:
+                o, r, te, tr, _ = e.step(actions[k, i])
+                assert vrew[i] == r and vterm[i] == te and vtrunc[i] == tr
+                pending[i] = te or tr
+                ends += te or tr
+            np.testing.assert_array_equal(vobs[i], o, err_msg=f"env {i} step {k}")
+    assert ends > 5 * n  # many episodes per env, most of them drawn ahead
+
+
 @pytest.mark.parametrize("env_id", [t.env_id for t in TIERS.values()] + [V1])
 def test_check_env_gymnasium_and_sb3(env_id):
     from gymnasium.utils.env_checker import check_env
