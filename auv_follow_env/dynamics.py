@@ -1295,6 +1295,22 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
             _place_follower(state, k, proc, p, cfg, idx[n0 + b], obs, truth)
 
 
+@njit(cache=True, parallel=True)
+def reset_kernel_parallel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs, truth, chunks):
+    """:func:`reset_kernel` on numba's threads: ``chunks`` contiguous slices of ``idx`` (whole
+    blocks of BLOCK envs) in a ``prange`` loop. Each env's reset is its own arithmetic and
+    draws, so the results equal the serial kernel's bit for bit."""
+    n = idx.shape[0]
+    nblk = (n + BLOCK - 1) // BLOCK
+    chunks = max(1, min(chunks, nblk))
+    for c in prange(chunks):
+        lo = min(n, (c * nblk // chunks) * BLOCK)
+        hi = min(n, ((c + 1) * nblk // chunks) * BLOCK)
+        if hi > lo:
+            reset_kernel(state, k, proc, queue, rs, p, cfg, idx[lo:hi], seeds[lo:hi], directions[lo:hi], obs,
+                         truth)
+
+
 @njit(cache=True)
 def _place_follower(state, k, proc, p, cfg, i, obs, truth):
     """After the warm-up: the follower at rest behind the held packet's reference point."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -293,36 +294,52 @@ def sample_params_v1_many(config: EnvConfig, rngs: list[np.random.Generator]
     return rows, seeds, directions, condition
 
 
-class _V1Episodes:
-    """The v1 episodes of N envs: what :meth:`BatchSim.reset` draws, and each env's condition.
+#: the arrays a reset writes (dynamics.reset_kernel): what a reset made ahead copies in
+_RESET_ARRAYS = ("state", "k", "proc", "queue", "rs", "params", "obs", "truth")
+
+
+class _Episodes:
+    """The episodes of N envs: what :meth:`BatchSim.reset` draws and starts, and each env's
+    v1 condition.
 
     Each env's episodes are drawn from its own generator, in order. With ``ahead`` (the vector
-    env's BatchSim) an env's next episode is drawn ahead: after a reset its draw waits in a
-    list of pending envs, and once the list is long (N / 8 envs, at most 256) all of them are
-    drawn in one call of :func:`sample_params_v1_many`, so that autoresets of a few envs per
-    step do not each pay that call's fixed cost. A draw made ahead is used only if the env
-    resets with the same generator object it came from (a new seed makes a new generator:
-    then the episode is drawn at the reset), so every env gets the same episodes, in the
-    same order, as if each were drawn at its reset (tests/test_link.py). Without ``ahead``
-    (the single env, whose generator is Gymnasium's ``np_random``) nothing is drawn early.
+    env's BatchSim) an env's next episode is drawn and started ahead: after an autoreset the env
+    waits in a list of pending envs, and once the list is long (N / 8 envs, at most 256) the
+    next episode of each is drawn in one call (:func:`sample_params_v1_many`; v0: twelve
+    uniforms each) and started in a shadow copy of the sim's arrays by one call of the reset
+    kernel (full blocks of envs; on numba's threads where the vector env steps on them). An
+    autoreset then copies the env's rows in. Nothing of a reset depends on the episode before
+    it, so this changes no result: the target, link and processes' warm-up of the next episode
+    is the same computation, done in bigger blocks, earlier. A draw made ahead is used only if
+    the env resets with the same generator object it came from (a new seed makes a new
+    generator: then the episode is drawn and started at the reset), so every env plays the
+    same episodes, in the same order, as if each were drawn at its reset (tests/test_link.py).
+    Without ``ahead`` (the single env, whose generator is Gymnasium's ``np_random``) nothing
+    is drawn early.
     """
 
-    def __init__(self, config: EnvConfig, n: int, *, ahead: bool) -> None:
-        self.config, self.n, self.ahead = config, n, ahead
-        self.batch = max(1, min(256, n // 8))  #: pending envs that trigger a draw ahead
-        self.keys: list[str] = []  #: the condition's fields, in info["condition"]'s order
+    def __init__(self, sim: BatchSim, *, ahead: bool) -> None:
+        self.sim, self.config, self.n, self.ahead = sim, sim.config, sim.num_envs, ahead
+        self.v1 = sim.v1
+        self.batch = max(1, min(256, self.n // 8))  #: pending envs that trigger a draw ahead
+        #: reset kernel of the starts ahead and of resets of two blocks or more: (kernel, extra args)
+        #: (the vector env sets the threaded one when it steps on threads)
+        self.kernel: tuple = (dyn.reset_kernel, ())
+        self.keys: list[str] = []  #: v1: the condition's fields, in info["condition"]'s order
         self.numeric: list[str] = []  #: those with numbers (columns of cond)
         self.fixed: dict[str, object] = {}  #: the others (the same for every episode of a config)
         self.cond: np.ndarray | None = None  #: (N, len(numeric)): each env's present condition
-        self.gen: list[np.random.Generator | None] = [None] * n  #: each env's generator
-        self.ready = np.zeros(n, dtype=np.bool_)  #: whether the env's next episode is drawn
+        self.gen: list[np.random.Generator | None] = [None] * self.n  #: each env's generator
+        self.ready = np.zeros(self.n, dtype=np.bool_)  #: whether the env's next episode is started ahead
         self.pending: list[int] = []
-        self.next_rows = np.zeros((n, dyn.NP))
-        self.next_seeds = np.zeros(n, dtype=np.int64)
-        self.next_dirs = np.zeros(n)
+        self.shadow: SimpleNamespace | None = None  #: the arrays of the episodes started ahead (lazily)
         self.next_cond: np.ndarray | None = None
 
-    def _draw(self, rngs: list[np.random.Generator]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _draw(self, rngs: list[np.random.Generator]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """(rows, seeds, directions, condition block) of the next episode of each generator."""
+        if not self.v1:  # v0: each env's 12 uniforms from its own generator, then the rows at once
+            rows = params_from_uniforms(self.config, np.array([rng.random(12) for rng in rngs]))
+            return rows, np.zeros(len(rngs), dtype=np.int64), np.zeros(len(rngs)), None
         rows, seeds, dirs, cond = sample_params_v1_many(self.config, rngs)
         if not self.keys:
             self.keys = list(cond)
@@ -335,40 +352,63 @@ class _V1Episodes:
             block[:, j] = cond[key]
         return rows, seeds, dirs, block
 
-    def start(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The new episodes of envs ``idx`` (env idx[j]'s from rngs[j]): (rows, seeds, directions);
-        records their conditions."""
+    @staticmethod
+    def _reset(a, kernel: tuple, idx: np.ndarray, seeds: np.ndarray, dirs: np.ndarray) -> None:
+        """The reset kernel on the envs ``idx`` of ``a`` (a BatchSim or the shadow arrays)."""
+        fn, extra = kernel
+        fn(a.state, a.k, a.proc, a.queue, a.rs, a.params, a.cfg, idx, seeds, dirs, a.obs, a.truth, *extra)
+
+    def start(self, idx: np.ndarray, rngs: list[np.random.Generator], auto: bool) -> None:
+        """Start the new episodes of envs ``idx`` (env idx[j]'s drawn from rngs[j]) in the sim's
+        arrays; record their conditions. ``auto``: an autoreset, after which the envs' next
+        episodes are started ahead (after an explicit reset they are not: a caller that
+        reseeds every episode, as the evaluations do, would throw them away)."""
+        sim = self.sim
         have = np.array([self.ready[i] and self.gen[i] is g for i, g in zip(idx.tolist(), rngs, strict=True)],
                         dtype=np.bool_)
-        rows = np.empty((len(idx), dyn.NP))
-        seeds = np.empty(len(idx), dtype=np.int64)
-        dirs = np.empty(len(idx))
         need = np.flatnonzero(~have)
         if need.size:
-            r, s, d, c = self._draw([rngs[j] for j in need])
-            rows[need], seeds[need], dirs[need] = r, s, d
-            self.cond[idx[need]] = c
+            ids = idx[need]
+            rows, seeds, dirs, c = self._draw([rngs[j] for j in need])
+            sim.params[ids] = rows
+            if self.v1:
+                self.cond[ids] = c
+            if sim.buf is not None:  # one packed env: the one-lane kernel (kernel_one)
+                if ids[0] != 0:
+                    raise ValueError(f"env index {ids[0]} out of range for one env")
+                reset_one(sim.buf, int(seeds[0]), float(dirs[0]))
+            else:
+                self._reset(sim, self.kernel if ids.size >= 2 * dyn.BLOCK else (dyn.reset_kernel, ()), ids, seeds,
+                            dirs)
         if have.any():
             took = idx[have]
-            rows[have], seeds[have], dirs[have] = self.next_rows[took], self.next_seeds[took], self.next_dirs[took]
-            self.cond[took] = self.next_cond[took]
+            for name in _RESET_ARRAYS:
+                getattr(sim, name)[took] = getattr(self.shadow, name)[took]
+            if self.v1:
+                self.cond[took] = self.next_cond[took]
         self.ready[idx] = False
         for i, g in zip(idx.tolist(), rngs, strict=True):
             self.gen[i] = g
-        if self.ahead:
+        if self.ahead and auto:
             self.pending.extend(idx.tolist())
             if len(self.pending) >= self.batch:
-                self._draw_ahead()
-        return rows, seeds, dirs
+                self._start_ahead()
 
-    def _draw_ahead(self) -> None:
-        """The next episode of every pending env (whose present one is drawn), in one call."""
+    def _start_ahead(self) -> None:
+        """Draw and start the next episode of every pending env, in one call each."""
         todo = np.array(sorted({i for i in self.pending if not self.ready[i]}), dtype=np.int64)
         self.pending = []
-        if todo.size:
-            r, s, d, c = self._draw([self.gen[i] for i in todo.tolist()])
-            self.next_rows[todo], self.next_seeds[todo], self.next_dirs[todo], self.next_cond[todo] = r, s, d, c
-            self.ready[todo] = True
+        if not todo.size:
+            return
+        if self.shadow is None:
+            self.shadow = SimpleNamespace(cfg=self.sim.cfg, **{name: np.zeros_like(getattr(self.sim, name))
+                                                                 for name in _RESET_ARRAYS})
+        rows, seeds, dirs, c = self._draw([self.gen[i] for i in todo.tolist()])
+        self.shadow.params[todo] = rows
+        if self.v1:
+            self.next_cond[todo] = c
+        self._reset(self.shadow, self.kernel, todo, seeds, dirs)
+        self.ready[todo] = True
 
     def condition(self, i: int) -> dict[str, object]:
         col = {key: j for j, key in enumerate(self.numeric)}
@@ -514,39 +554,32 @@ class BatchSim:
             self.rew = np.zeros(num_envs)
             self.term = np.zeros(num_envs, dtype=np.bool_)
         #: v1: the envs' episode draws and conditions (a vector env's next episodes drawn ahead)
-        self._episodes = _V1Episodes(config, num_envs, ahead=draw_ahead) if self.v1 else None
+        self._episodes = _Episodes(self, ahead=draw_ahead)
         self.sample_times = config.dt * np.arange(1, config.n_steps + 1)
 
-    def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
-        """New episodes for envs ``idx``, drawing env idx[j]'s parameters from rngs[j]."""
+    def reset(self, idx: np.ndarray, rngs: list[np.random.Generator], *, auto: bool = False) -> None:
+        """New episodes for envs ``idx``, drawing env idx[j]'s parameters from rngs[j]. ``auto``: an
+        autoreset (with ``draw_ahead``, these envs' next episodes are then started ahead)."""
         idx = np.asarray(idx, dtype=np.int64)
-        seeds = np.zeros(len(idx), dtype=np.int64)
-        directions = np.zeros(len(idx))
         if len(rngs) != len(idx):
             raise ValueError(f"{len(idx)} envs to reset but {len(rngs)} generators")
-        if self.v1:
-            if len(idx):
-                self.params[idx], seeds[:], directions[:] = self._episodes.start(idx, rngs)
-        elif len(idx):  # v0: each env's 12 uniforms from its own generator, then the rows at once
-            self.params[idx] = params_from_uniforms(self.config, np.array([rng.random(12) for rng in rngs]))
-        if self.buf is not None:  # one packed env: the one-lane kernel (kernel_one)
-            if len(idx):
-                if idx[0] != 0:
-                    raise ValueError(f"env index {idx[0]} out of range for one env")
-                reset_one(self.buf, int(seeds[0]), float(directions[0]))
-            return
-        dyn.reset_kernel(self.state, self.k, self.proc, self.queue, self.rs, self.params, self.cfg, idx, seeds,
-                         directions, self.obs, self.truth)
+        if len(idx):
+            self._episodes.start(idx, rngs, auto)
+
+    def reset_on_threads(self, chunks: int) -> None:
+        """Run resets of two blocks of envs or more, and the starts made ahead, on numba's threads
+        (:func:`~auv_follow_env.dynamics.reset_kernel_parallel`, ``chunks`` slices; the same results)."""
+        self._episodes.kernel = (dyn.reset_kernel_parallel, (chunks,))
 
     def condition(self, i: int) -> dict[str, object]:
         """v1: env i's condition of its present episode (every field, with the drawn values)."""
-        if self._episodes is None or self._episodes.cond is None:
+        if self._episodes.cond is None:
             raise ValueError("condition() needs a v1 sim after its first reset")
         return self._episodes.condition(i)
 
     def conditions(self, mask: np.ndarray) -> dict[str, np.ndarray]:
         """v1: the conditions of the envs in ``mask`` by field, (N,) arrays (NaN / None elsewhere)."""
-        if self._episodes is None or self._episodes.cond is None:
+        if self._episodes.cond is None:
             raise ValueError("conditions() needs a v1 sim after its first reset")
         return self._episodes.conditions(mask)
 

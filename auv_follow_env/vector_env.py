@@ -206,6 +206,7 @@ class AUVFollowVectorEnv(VectorEnv):
             chunks = min(4 * threads, self.num_envs // _MIN_CHUNK)
             if chunks >= 2:
                 self._parallel = (dyn.step_kernel_parallel, chunks)
+                self._sim.reset_on_threads(chunks)
                 omp_wait_policy()
         #: whether steps run on numba's threads (the resolved ``parallel`` argument)
         self.parallel = self._parallel is not None
@@ -302,7 +303,7 @@ class AUVFollowVectorEnv(VectorEnv):
         if sim.v1 and done_now.any():
             link = self._link_stats(done_now)
         if ended.size:
-            sim.reset(ended, [self._rngs[i] for i in ended])
+            sim.reset(ended, [self._rngs[i] for i in ended], auto=True)
             rewards[ended] = 0.0
             terminated[ended] = False
             truncated[ended] = False
