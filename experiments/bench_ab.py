@@ -3,6 +3,7 @@
     python -m experiments.bench_ab --baseline 5a3ae9d          # any revision of this repository
     python -m experiments.bench_ab --baseline 5a3ae9d --sizes 0 1024 4096 --rounds 3   # 0: the single env
     python -m experiments.bench_ab --baseline main --sizes 0 4096 --cold 2   # and the cold start
+    python -m experiments.bench_ab --baseline main --burn 1200   # the steady state of a long run
 
 Absolute rates on a shared machine drift by tens of percent between runs (other virtual
 machines, frequency), so a speed-up is only meaningful against a baseline measured in the
@@ -35,12 +36,17 @@ _CHILD = r"""
 import json, sys, time
 import numpy as np, gymnasium as gym
 import auv_follow_env
-env_id, n, par, budget = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "1", float(sys.argv[4])
+env_id, n, par = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "1"
+budget, burn = float(sys.argv[4]), int(sys.argv[5])
 acts = np.random.default_rng(0).uniform(-1, 1, (8, n, 3)).astype(np.float32)
 if n == 0:  # the single env through gym.make, reset at episode ends
     env = gym.make(env_id)
     env.reset(seed=0)
     single = [a[0] for a in np.random.default_rng(0).uniform(-1, 1, (8, 1, 3)).astype(np.float32)]
+    for j in range(burn):
+        _, _, term, trunc, _ = env.step(single[j % 8])
+        if term or trunc:
+            env.reset()
     count, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < budget:
         for _ in range(100):
@@ -52,7 +58,8 @@ if n == 0:  # the single env through gym.make, reset at episode ends
     raise SystemExit
 venv = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", parallel=par)
 venv.reset(seed=0)
-venv.step(acts[0])
+for j in range(max(1, burn)):
+    venv.step(acts[j % 8])
 count, t0 = 0, time.perf_counter()
 while time.perf_counter() - t0 < budget:
     venv.step(acts[count % 8])
@@ -64,9 +71,10 @@ CASES = (("AUVFollow-S4-v0", False), ("AUVFollow-S4-v0", True), ("AUVFollow-Hard
          ("AUVFollow-Hard-v1", True))
 
 
-def _rate(src: Path, env_id: str, n: int, parallel: bool, budget: float) -> float:
+def _rate(src: Path, env_id: str, n: int, parallel: bool, budget: float, burn: int = 0) -> float:
     env = {**os.environ, "PYTHONPATH": str(src)}
-    out = subprocess.run([sys.executable, "-c", _CHILD, env_id, str(n), "1" if parallel else "0", str(budget)],
+    out = subprocess.run([sys.executable, "-c", _CHILD, env_id, str(n), "1" if parallel else "0", str(budget),
+                          str(burn)],
                          cwd=src, env=env, capture_output=True, text=True, check=True)
     return float(json.loads(out.stdout.strip().splitlines()[-1]))
 
@@ -80,10 +88,13 @@ def main(argv: list[str] | None = None) -> str:
     p.add_argument("--cold", type=int, default=0, metavar="ROUNDS",
                    help="also time the cold start (first reset + step of the single Hard-v1 env with an empty "
                         "numba cache) of each side, alternating, this many rounds (default 0: not timed)")
+    p.add_argument("--burn", type=int, default=0, metavar="STEPS",
+                   help="control steps before timing (default 0: right after the reset, when no episode has ended "
+                        "yet; 1200, one episode, measures the steady state of a long run, autoresets included)")
     p.add_argument("--out", type=Path, default=ROOT / "results" / "tmp" / "bench_ab.md", help="Markdown output")
     a = p.parse_args(argv)
-    if a.rounds < 1 or a.budget <= 0 or any(n < 0 for n in a.sizes) or a.cold < 0:
-        p.error("--rounds must be >= 1, --sizes >= 0 (0: the single env), --budget > 0, --cold >= 0")
+    if a.rounds < 1 or a.budget <= 0 or any(n < 0 for n in a.sizes) or a.cold < 0 or a.burn < 0:
+        p.error("--rounds must be >= 1, --sizes >= 0 (0: the single env), --budget > 0, --cold >= 0, --burn >= 0")
     rev = subprocess.run(["git", "rev-parse", "--short", a.baseline], cwd=ROOT, capture_output=True, text=True)
     if rev.returncode != 0:
         p.error(f"--baseline {a.baseline!r} is not a revision of this repository")
@@ -100,7 +111,7 @@ def main(argv: list[str] | None = None) -> str:
                 best = {"baseline": 0.0, "this": 0.0}
                 for _ in range(a.rounds):
                     for side, src in (("baseline", base), ("this", ROOT)):
-                        best[side] = max(best[side], _rate(src, env_id, n, par, a.budget))
+                        best[side] = max(best[side], _rate(src, env_id, n, par, a.budget, a.burn))
                 rows.append((n, env_id, par, best["baseline"], best["this"]))
                 print(f"N={n} {env_id} parallel={par}: {best['baseline'] / 1e6:.3f} M -> {best['this'] / 1e6:.3f} M",
                       flush=True)
@@ -113,8 +124,8 @@ def main(argv: list[str] | None = None) -> str:
                       f"cached {c['cached']:.2f} s", flush=True)
     lines = [f"# This checkout ({head}) against {a.baseline} ({rev.stdout.strip()}), env-steps/s", "",
              f"Native vector env, random actions, {a.budget:g} s per measurement in a fresh process (numba cache "
-             f"warm), baseline and this checkout alternating for {a.rounds} rounds, best kept; load average "
-             f"before the run {load}, after it {', '.join(f'{x:.2f}' for x in os.getloadavg())}. Default settings "
+             f"warm; timed after {a.burn} control steps), baseline and this checkout alternating for {a.rounds} "
+             f"rounds, best kept; load average before the run {load}, after it {', '.join(f'{x:.2f}' for x in os.getloadavg())}. Default settings "
              f"(each revision's default sin/cos: glibc's before issue 23, the SIMD polynomial since).", "",
              "| N | env | threads | baseline | this checkout | speed-up |", "|---|---|---|---|---|---|"]
     for n, env_id, par, b, t in rows:

@@ -57,6 +57,7 @@ class Args:
     policy: bool = True  #: time evaluate_batched with PROPOSED at the largest N
     policy_episode_s: float = 60.0  #: episode length of that run [s]
     cold_start: bool = True  #: time the first reset + step of a fresh process with an empty numba cache
+    burn: int = 1200  #: steady state: control steps stepped before timing (0: not measured)
 
 
 #: goals at the largest N (issue 23): (label, numerator column, denominator column, minimum ratio)
@@ -100,9 +101,12 @@ def parse_args(argv: list[str] | None = None) -> Args:
                    help="episode length of the evaluate_batched run [s] (default %(default)s)")
     p.add_argument("--no-cold-start", dest="cold_start", action="store_false",
                    help="skip the cold-start measurement (a fresh process compiling the kernels, about a minute)")
+    p.add_argument("--burn", type=int, default=Args.burn,
+                   help="steady state: control steps before timing the native envs again at the largest N, so that "
+                        "episodes end and restart at their long-run rate (default %(default)s, one episode; 0: skip)")
     a = p.parse_args(argv)
-    if a.budget <= 0 or any(n < 1 for n in a.sizes) or a.repeats < 1 or a.policy_episode_s <= 0:
-        p.error("--budget and --policy-episode-s must be > 0, --sizes and --repeats >= 1")
+    if a.budget <= 0 or any(n < 1 for n in a.sizes) or a.repeats < 1 or a.policy_episode_s <= 0 or a.burn < 0:
+        p.error("--budget and --policy-episode-s must be > 0, --sizes and --repeats >= 1, --burn >= 0")
     a.out = output_path(a, p, Args.out)
     return Args(**vars(a))
 
@@ -217,6 +221,25 @@ def bench_size(args: Args, n: int, rng: np.random.Generator) -> dict[str, float]
     for e in envs.values():
         e.close()
     return row
+
+
+def steady_state(args: Args, n: int) -> dict[str, float]:
+    """Env-steps/s of the native envs at N = n after ``args.burn`` control steps of random actions:
+    right after a reset no episode has ended yet, while a long run (training, Monte Carlo) restarts
+    about one env in (episode length) per step; each env's reset (its parameters and the
+    target's and link's warm-up) is part of the rate. Columns as :func:`bench_size`'s."""
+    acts = _cycle(np.random.default_rng(args.seed).uniform(-1.0, 1.0, (8, n, 3)).astype(np.float32))
+    cases = {"native": (args.env_id, False), "tier": (args.tier_id, False)}
+    if args.parallel:
+        cases.update({"parallel": (args.env_id, True), "tier_parallel": (args.tier_id, True)})
+    out = {}
+    for name, (env_id, par) in cases.items():
+        env = _native(env_id, n, args.seed, par)
+        for j in range(args.burn):
+            env.step(acts(j))
+        out[name] = max(rate(lambda j, e=env: e.step(acts(j)), n, args.budget) for _ in range(args.repeats))
+        env.close()
+    return out
 
 
 # --- profile of the batched step ------------------------------------------------------------
@@ -468,7 +491,7 @@ def fmt(x: float) -> str:
 def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after: str,
            prof: dict[str, float] | None, machine: dict[str, float], policy: float,
            policy_libm: float = float("nan"), cold: dict[str, dict[str, float]] | None = None,
-           tier_prof: dict[str, float] | None = None) -> str:
+           tier_prof: dict[str, float] | None = None, steady: dict[str, float] | None = None) -> str:
     threads = numba.get_num_threads()
     lines = [f"# Vector env speed: {args.env_id} (and {args.tier_id}), env-steps/s", "",
              f"Machine: {platform.processor() or platform.machine()} ({_cpu_target()}), {os.cpu_count()} CPUs, Python "
@@ -502,6 +525,14 @@ def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after:
         rf = row.get(LIBM_OF.get(col, ""), float("nan"))
         lines.append(f"- {label}: {fmt(r)} env-steps/s (goal >= {fmt(goal)}): {verdict(r, goal)} "
                      f"[libm: {fmt(rf)}, {verdict(rf, goal)}]")
+    if steady:
+        r = steady["tier"] / steady["native"]
+        lines.append(f"- steady state (after {args.burn} steps: episodes restart at their long-run rate), one "
+                     f"thread: {args.env_id} {fmt(steady['native'])}, {args.tier_id} {fmt(steady['tier'])}, ratio "
+                     f"{r:.2f} (goal >= 0.90): {verdict(r, 0.9)}; one thread >= 1.8M: "
+                     f"{verdict(steady['native'], 1.8e6)}"
+                     + (f"; both cores {fmt(steady['parallel'])} (goal >= 3M: {verdict(steady['parallel'], 3e6)}), "
+                        f"{args.tier_id} {fmt(steady['tier_parallel'])}" if "parallel" in steady else ""))
     kns = 1e9 / row["kernel"]
     kls = 1e9 / row["kernel_libm"]
 
@@ -641,6 +672,9 @@ def main(argv: list[str] | None = None) -> str:
         rows[n] = bench_size(args, n, rng)
         print(f"N={n}: " + ", ".join(f"{c} {fmt(v)}" for c, v in rows[n].items()), flush=True)
     n = max(args.sizes)
+    steady = steady_state(args, n) if args.burn else None
+    if steady:
+        print(f"steady state N={n}: " + ", ".join(f"{c} {fmt(v)}" for c, v in steady.items()), flush=True)
     prof = profile(args, n) if n >= dyn.BLOCK else None
     tier_prof = profile(args, n, args.tier_id) if n >= dyn.BLOCK else None
     machine = machine_throughput(args.budget, args.repeats)
@@ -650,7 +684,7 @@ def main(argv: list[str] | None = None) -> str:
     if args.cold_start:
         cold = {"single": cold_start(args.env_id), "vector": cold_start(args.env_id, 64)}
         print(f"cold start: {cold}", flush=True)
-    text = report(args, rows, load, _load(), prof, machine, policy, policy_libm, cold, tier_prof)
+    text = report(args, rows, load, _load(), prof, machine, policy, policy_libm, cold, tier_prof, steady)
     return write_report(args.out, text)
 
 
