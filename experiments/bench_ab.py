@@ -125,7 +125,8 @@ def main(argv: list[str] | None = None) -> str:
     lines = [f"# This checkout ({head}) against {a.baseline} ({rev.stdout.strip()}), env-steps/s", "",
              f"Native vector env, random actions, {a.budget:g} s per measurement in a fresh process (numba cache "
              f"warm; timed after {a.burn} control steps), baseline and this checkout alternating for {a.rounds} "
-             f"rounds, best kept; load average before the run {load}, after it {', '.join(f'{x:.2f}' for x in os.getloadavg())}. Default settings "
+             f"rounds, best kept; load average before the run {load}, after it "
+             f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}. Default settings "
              f"(each revision's default sin/cos: glibc's before issue 23, the SIMD polynomial since).", "",
              "| N | env | threads | baseline | this checkout | speed-up |", "|---|---|---|---|---|---|"]
     for n, env_id, par, b, t in rows:
