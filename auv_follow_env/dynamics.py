@@ -757,30 +757,26 @@ _LG4, _LG5, _LG6 = 2.222219843214978396e-01, 1.818357216161805012e-01, 1.5313837
 _LG7 = 1.479819860511658591e-01
 
 
-@intrinsic
-def _bits(typingctx, x):
-    """The IEEE-754 bits of the float64 ``x`` as an int64 (a bit cast)."""
-    if not isinstance(x, types.Float):
-        return None
-    sig = types.int64(types.float64)
+def _bitcast(name: str, frm, to, ll_to, doc: str):
+    """An intrinsic that reinterprets the bits of a ``frm`` value as a ``to`` value (same width)."""
+    def cast(typingctx, x):
+        if x != frm:
+            return None
 
-    def codegen(context, builder, sig, args):
-        return builder.bitcast(args[0], llir.IntType(64))
+        def codegen(context, builder, sig, args):
+            return builder.bitcast(args[0], ll_to)
 
-    return sig, codegen
+        return to(frm), codegen
+
+    cast.__name__ = cast.__qualname__ = name
+    cast.__doc__ = doc
+    return intrinsic(cast)
 
 
-@intrinsic
-def _from_bits(typingctx, n):
-    """The float64 whose IEEE-754 bits are the int64 ``n`` (a bit cast)."""
-    if not isinstance(n, types.Integer):
-        return None
-    sig = types.float64(types.int64)
-
-    def codegen(context, builder, sig, args):
-        return builder.bitcast(args[0], llir.DoubleType())
-
-    return sig, codegen
+_bits = _bitcast("_bits", types.float64, types.int64, llir.IntType(64),
+                 "The IEEE-754 bits of the float64 ``x`` as an int64 (a bit cast).")
+_from_bits = _bitcast("_from_bits", types.int64, types.float64, llir.DoubleType(),
+                      "The float64 whose IEEE-754 bits are the int64 ``x`` (a bit cast).")
 
 
 @njit(cache=True, inline="always")
@@ -890,6 +886,20 @@ def update_processes_block(proc, rs, p, m, wk, fast):
             sp = max(0.0, p[i, P_CS_MEAN] + proc[i, R_CSX])
             proc[i, R_CGX] = sp * wk[_ix(K_CDC, b)]
             proc[i, R_CGY] = sp * wk[_ix(K_CDS, b)]
+
+
+@njit(cache=True)
+def update_processes_all(proc, rs, p, steps, fast):
+    """:func:`update_processes_block` over every env, block by block as the step runs it, for
+    ``steps`` control steps (for the tests and the speed benchmark)."""
+    n = proc.shape[0]
+    wk = work_buffer(True)
+    for _ in range(steps):
+        for a in range(0, n, BLOCK):
+            m = min(BLOCK, n - a)
+            for b in range(m):
+                wk[_ix(K_ENV, b)] = a + b
+            update_processes_block(proc, rs, p, m, wk, fast)
 
 
 @njit(cache=True)

@@ -129,7 +129,11 @@ class AUVFollowVectorEnv(VectorEnv):
     step after env ``i`` terminated or truncated resets it, ignoring its action, and returns
     its first observation with reward 0 and ``terminated = truncated = False``. Episodes
     truncate at ``episode_s`` (``config.n_steps`` steps) inside the env: vector envs have no
-    ``TimeLimit`` wrapper.
+    ``TimeLimit`` wrapper. After an env's autoreset its next episode is drawn from its
+    generator and started (the target's and link's warm-up) ahead, together with other envs',
+    and copied in at its next autoreset: the same episodes in the same order as drawing each at
+    its reset (a reseeded env's early draw is dropped), at less cost per autoreset. The
+    generators therefore run up to one episode ahead of the envs: seed, do not share them.
 
     ## Info
 
@@ -152,7 +156,9 @@ class AUVFollowVectorEnv(VectorEnv):
     into at least two chunks of 64 envs; ``False`` never. Threaded steps are one parallel
     region per step (:func:`~auv_follow_env.dynamics.step_kernel_parallel`: contiguous
     slices of the batch in a ``prange`` loop, the same per-env code), so the results are
-    bit-identical either way; the speed-up is at most the number of free cores. The threaded
+    bit-identical either way; the speed-up is at most the number of free cores. Resets of two
+    blocks of envs or more, and the episodes started ahead, then run on the threads too
+    (:func:`~auv_follow_env.dynamics.reset_kernel_parallel`). The threaded
     kernel is compiled on its first use and then cached on disk like the others;
     ``NUMBA_NUM_THREADS`` sets the thread count. Choosing the threads may set
     ``OMP_WAIT_POLICY=PASSIVE`` in the process environment, if neither it nor

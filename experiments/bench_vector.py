@@ -294,20 +294,6 @@ def _link_all(state, k, proc, queue, rs, p, cfg, reps):
 
 
 @njit(cache=True)
-def _processes_all(proc, rs, p, reps, fast):
-    """One control step of every env's random processes (the draws where a std > 0), block by
-    block as the step runs them (:func:`~auv_follow_env.dynamics.update_processes_block`)."""
-    n = proc.shape[0]
-    wk = dyn.work_buffer(True)
-    for _ in range(reps):
-        for a in range(0, n, dyn.BLOCK):
-            m = min(dyn.BLOCK, n - a)
-            for b in range(m):
-                wk[dyn.K_ENV * dyn.BLOCK + b] = a + b
-            dyn.update_processes_block(proc, rs, p, m, wk, fast)
-
-
-@njit(cache=True)
 def _advance_cached(state, k, proc, p, cfg, forces, reps):
     """The block RK4 of the step from the cached start values (as step_range runs it)."""
     n = state.shape[0]
@@ -381,8 +367,8 @@ def profile(args: Args, n: int, env_id: str | None = None) -> dict[str, float]:
     proc, queue, rs = sim.proc.copy(), sim.queue.copy(), sim.rs.copy()
     out["link"] = _ns_per_env(lambda r: _link_all(sim.state, sim.k, proc, queue, rs, sim.params, sim.cfg, r),
                               n, 1, b, rp)
-    out["processes"] = _ns_per_env(lambda r: _processes_all(proc, rs, sim.params, r, sim.cfg[dyn.C_FAST] != 0.0),
-                                   n, 1, b, rp)
+    fast = sim.cfg[dyn.C_FAST] != 0.0
+    out["processes"] = _ns_per_env(lambda r: dyn.update_processes_all(proc, rs, sim.params, r, fast), n, 1, b, rp)
     venv.close()
     return out
 

@@ -83,19 +83,6 @@ def test_splitmix64_matches_the_reference_sequence():
 
 
 @njit
-def _block_processes(proc, rs, p, steps, fast):
-    """update_processes_block over all envs (blocks of BLOCK lanes) for ``steps`` control steps."""
-    n = proc.shape[0]
-    wk = dyn.work_buffer(True)
-    for _ in range(steps):
-        for a in range(0, n, dyn.BLOCK):
-            m = min(dyn.BLOCK, n - a)
-            for b in range(m):
-                wk[dyn.K_ENV * dyn.BLOCK + b] = a + b
-            dyn.update_processes_block(proc, rs, p, m, wk, fast)
-
-
-@njit
 def _scalar_processes(proc, rs, p, steps):
     for _ in range(steps):
         for i in range(proc.shape[0]):
@@ -132,11 +119,11 @@ def test_block_processes_draw_what_the_per_env_reference_draws():
     _scalar_processes(ref_proc, ref_rs, p, steps)
     assert np.count_nonzero(ref_proc[:, dyn.R_GAUSS_HAS]) > 10  # the cache is exercised
     libm_proc, libm_rs = proc0.copy(), rs0.copy()
-    _block_processes(libm_proc, libm_rs, p, steps, False)
+    dyn.update_processes_all(libm_proc, libm_rs, p, steps, False)
     np.testing.assert_array_equal(libm_proc, ref_proc)
     np.testing.assert_array_equal(libm_rs, ref_rs)
     simd_proc, simd_rs = proc0.copy(), rs0.copy()
-    _block_processes(simd_proc, simd_rs, p, steps, True)
+    dyn.update_processes_all(simd_proc, simd_rs, p, steps, True)
     np.testing.assert_array_equal(simd_rs, ref_rs)
     np.testing.assert_array_equal(simd_proc[:, dyn.R_GAUSS_HAS], ref_proc[:, dyn.R_GAUSS_HAS])
     np.testing.assert_allclose(simd_proc, ref_proc, rtol=1e-13, atol=1e-15)
