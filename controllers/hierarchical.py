@@ -13,11 +13,13 @@ heading 0: the laws are equivariant under rotations and translations (K_p is a s
 gain), so this equals the paper's inertial-frame computation followed by R(psi)^T, eq. (27).
 
 Speed: :class:`HierarchicalController` (without estimator or disturbance observer) runs the
-law as three compiled passes over the batch (:func:`_predicted`, :func:`_reference_pass`,
-:func:`_law_pass`) between numpy's ``arctan2``/``cos``/``sin``, each cos/sin evaluated once
-per step, instead of the numpy composition of the functions below; the arithmetic is the
+law as two compiled passes over the batch (:func:`_reference_all`, :func:`_law_pass`), each
+libm function (atan2, cos, sin: glibc's, as numpy's float64 ufuncs call them) evaluated once
+per env, instead of the numpy composition of the functions below; the arithmetic is the
 same IEEE operations in the same order, so the results are bit-identical (tested against
-the composition; numba contracts nothing to FMA without fastmath). :meth:`reference` keeps
+the composition; numba contracts nothing to FMA without fastmath). Batches of
+:data:`THREADED_MIN_ENVS` envs or more run the passes on numba's threads (envs are
+independent: the same bits). :meth:`reference` keeps
 its result for the observation it was given, and the next :meth:`forces` on a bit-identical
 observation reuses it (evaluation calls ``reference`` on the observation the next
 ``predict`` sees).
@@ -25,10 +27,13 @@ observation reuses it (evaluation calls ``reference`` on the observation the nex
 
 from __future__ import annotations
 
+import math
+import types
 from dataclasses import dataclass
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from auv_follow_env.layout import LAYOUTS, OBS_DIM_V1, OBS_INDEX, OBS_INDEX_V1, decode
 from auv_follow_env.params import TaskSpec
@@ -155,36 +160,38 @@ _CU, _CV = OBS_INDEX["current_u"], OBS_INDEX["current_v"]
 _AGE, _HAS = OBS_INDEX_V1["packet_age"], OBS_INDEX_V1["has_packet"]
 
 
-@njit(cache=True)
-def _predicted(a, psi_d, c, s, enabled, tau, tau_col, x, y, psi):
-    """:func:`predict_target`'s position and heading into x, y, psi; ``c``, ``s`` = cos, sin of
-    ``psi_d``; tau is ``a[:, tau_col]`` if tau_col >= 0 (v1 packet age), else ``tau``."""
-    for i in range(a.shape[0]):
+def _reference_all(a, enabled, tau, tau_col, pdx, pdy, psi_off, hold_col, ref, neg, c, s):
+    """:func:`predict_target` then :func:`reference_point`, env by env: psi_d = atan2 of the
+    packet's heading cos/sin, the prediction (tau = ``a[:, tau_col]`` if tau_col >= 0, the v1
+    packet age, else ``tau``), the reference into ref (N, 3), zero where ``a[:, hold_col] < 0.5``
+    if hold_col >= 0 (:func:`no_packet_mask`); neg = -ref[:, 2]; c, s = cos, sin of the
+    predicted heading psi_hat."""
+    for i in prange(a.shape[0]):
+        psi_d = math.atan2(a[i, _SIN], a[i, _COS])
         if enabled:
+            cd = math.cos(psi_d)
+            sd = math.sin(psi_d)
             t = a[i, tau_col] if tau_col >= 0 else tau
             u = a[i, _TU]
             v = a[i, _TV]
-            vx = c[i] * u - s[i] * v
-            vy = s[i] * u + c[i] * v
-            x[i] = a[i, _DX] + vx * t
-            y[i] = a[i, _DY] + vy * t
-            psi[i] = psi_d[i] + a[i, _TR] * t
+            vx = cd * u - sd * v
+            vy = sd * u + cd * v
+            x = a[i, _DX] + vx * t
+            y = a[i, _DY] + vy * t
+            psi = psi_d + a[i, _TR] * t
         else:
-            x[i] = a[i, _DX]
-            y[i] = a[i, _DY]
-            psi[i] = psi_d[i]
-
-
-@njit(cache=True)
-def _reference_pass(a, x, y, psi, c, s, pdx, pdy, psi_off, hold_col, ref, neg):
-    """:func:`reference_point` (``c``, ``s`` = cos, sin of psi) into ref (N, 3), zero where
-    ``a[:, hold_col] < 0.5`` if hold_col >= 0 (:func:`no_packet_mask`); neg = -ref[:, 2]."""
-    for i in range(a.shape[0]):
-        ox = c[i] * pdx - s[i] * pdy
-        oy = s[i] * pdx + c[i] * pdy
-        xr = x[i] + ox
-        yr = y[i] + oy
-        pr = psi[i] + psi_off
+            x = a[i, _DX]
+            y = a[i, _DY]
+            psi = psi_d
+        ci = math.cos(psi)
+        si = math.sin(psi)
+        c[i] = ci
+        s[i] = si
+        ox = ci * pdx - si * pdy
+        oy = si * pdx + ci * pdy
+        xr = x + ox
+        yr = y + oy
+        pr = psi + psi_off
         if hold_col >= 0 and a[i, hold_col] < 0.5:
             xr = 0.0
             yr = 0.0
@@ -205,9 +212,9 @@ def _sat(z):
     return z
 
 
-@njit(cache=True)
-def _law_pass(a, ref, c, s, e_psi, hold_col, pdx, pdy, gain, model, fa, fb, prev, d, reset, reset_all, F):
-    """:func:`outer_loop` (``c``, ``s`` = cos, sin of psi_hat; e_psi = wrap_to_pi(-psi_ref)),
+def _law_pass(a, ref, c, s, neg, hold_col, pdx, pdy, gain, model, fa, fb, prev, d, reset, reset_all, F):
+    """:func:`outer_loop` (``c``, ``s`` = cos, sin of psi_hat; neg = -psi_ref, wrapped to
+    (-pi, pi] here as ``wrap_to_pi`` does, eq. (24)),
     zeroed where held, the filtered derivative (state prev, d; restarted where ``reset`` or
     everywhere if ``reset_all``) and :func:`inner_loop` into F (N, 3).
 
@@ -216,7 +223,8 @@ def _law_pass(a, ref, c, s, e_psi, hold_col, pdx, pdy, gain, model, fa, fb, prev
     nkp, nkpsi, k_u, k_v, k_r = gain[0], gain[1], gain[2], gain[3], gain[4]
     rho0, rho1, rho2, phi0, phi1, phi2 = gain[5], gain[6], gain[7], gain[8], gain[9], gain[10]
     m, i_z, x_u, y_v, n_r = model[0], model[1], model[2], model[3], model[4]
-    for i in range(a.shape[0]):
+    for i in prange(a.shape[0]):
+        e_psi = math.atan2(math.sin(neg[i]), math.cos(neg[i]))
         u_hat = a[i, _TU]
         v_hat = a[i, _TV]
         r_hat = a[i, _TR]
@@ -230,7 +238,7 @@ def _law_pass(a, ref, c, s, e_psi, hold_col, pdx, pdy, gain, model, fa, fb, prev
         vffy = fy + r_hat * ox
         u_d = nkp * e_x + vffx
         v_d = nkp * e_y + vffy
-        r_d = nkpsi * e_psi[i] + r_hat
+        r_d = nkpsi * e_psi + r_hat
         if hold_col >= 0 and a[i, hold_col] < 0.5:
             u_d = 0.0
             v_d = 0.0
@@ -262,6 +270,28 @@ def _law_pass(a, ref, c, s, e_psi, hold_col, pdx, pdy, gain, model, fa, fb, prev
         F[i, 0] = m * ud_dot + x_u * u_r - m * v * r - k_u * e_u - rho0 * _sat(e_u / phi0)
         F[i, 1] = m * vd_dot + y_v * v_r + m * u * r - k_v * e_v - rho1 * _sat(e_v / phi1)
         F[i, 2] = i_z * rd_dot + n_r * r - k_r * e_r - rho2 * _sat(e_r / phi2)
+
+
+def _threaded(f, name: str):
+    """``f`` compiled with numba's threads (its ``prange`` loop split among them): a function of
+    its own name, so that its on-disk cache is its own."""
+    g = types.FunctionType(f.__code__, f.__globals__, name, f.__defaults__, f.__closure__)
+    g.__qualname__ = name
+    return njit(cache=True, parallel=True)(g)
+
+
+#: the passes, serial and on numba's threads (per env the same arithmetic: the same bits)
+_reference_serial, _reference_threads = njit(cache=True)(_reference_all), _threaded(_reference_all, "_reference_par")
+_law_serial, _law_threads = njit(cache=True)(_law_pass), _threaded(_law_pass, "_law_par")
+#: batches from this many envs run the passes on numba's threads (as the vector env's steps)
+THREADED_MIN_ENVS = 256
+
+
+def _passes(n: int):
+    """(reference pass, law pass) for a batch of n envs."""
+    if n >= THREADED_MIN_ENVS and numba.get_num_threads() > 1:
+        return _reference_threads, _law_threads
+    return _reference_serial, _law_serial
 
 
 @njit(cache=True)
@@ -327,18 +357,10 @@ class HierarchicalController(ScriptedPolicy):
         compiled, each libm function called once per env."""
         n = a.shape[0]
         v1 = a.shape[1] == OBS_DIM_V1
-        psi_d = np.arctan2(a[:, _SIN], a[:, _COS])
-        if self.prediction:
-            c, s = np.cos(psi_d), np.sin(psi_d)
-        else:
-            c = s = psi_d  # unused
-        x, y, psi = np.empty(n), np.empty(n), np.empty(n)
-        _predicted(a, psi_d, c, s, self.prediction, float(self.spec.delay_s), _AGE if v1 else -1, x, y, psi)
-        c, s = np.cos(psi), np.sin(psi)
-        ref, neg = np.empty((n, 3)), np.empty(n)
+        ref, neg, c, s = np.empty((n, 3)), np.empty(n), np.empty(n), np.empty(n)
         p_d = self.spec.p_d
-        _reference_pass(a, x, y, psi, c, s, float(p_d[0]), float(p_d[1]), float(self.spec.psi_d),
-                        _HAS if v1 else -1, ref, neg)
+        _passes(n)[0](a, self.prediction, float(self.spec.delay_s), _AGE if v1 else -1, float(p_d[0]), float(p_d[1]),
+                      float(self.spec.psi_d), _HAS if v1 else -1, ref, neg, c, s)
         return ref, c, s, neg
 
     def _cached_reference(self, a: np.ndarray):
@@ -353,7 +375,6 @@ class HierarchicalController(ScriptedPolicy):
         n = obs.shape[0]
         cached = self._cached_reference(obs)
         ref, c, s, neg = cached if cached is not None else self._fused_reference(obs)
-        e_psi = np.arctan2(np.sin(neg), np.cos(neg))  # wrap_to_pi(-psi_ref), eq. (24)
         diff = self._diff
         reset_all = diff.prev is None or diff.prev.shape != (n, 3)
         if reset_all:
@@ -363,8 +384,8 @@ class HierarchicalController(ScriptedPolicy):
         gain = np.array([-g.K_p, -g.K_psi, g.K_u, g.K_v, g.K_r, *rho, *g.phi], dtype=np.float64)
         model = np.array([nom.m, nom.I_z, nom.X_u, nom.Y_v, nom.N_r], dtype=np.float64)
         F = np.empty((n, 3))
-        _law_pass(obs, ref, c, s, e_psi, _HAS if obs.shape[1] == OBS_DIM_V1 else -1, float(p_d[0]), float(p_d[1]),
-                  gain, model, diff.a, diff.b, diff.prev, diff.d, reset_mask, reset_all, F)
+        _passes(n)[1](obs, ref, c, s, neg, _HAS if obs.shape[1] == OBS_DIM_V1 else -1, float(p_d[0]), float(p_d[1]),
+                      gain, model, diff.a, diff.b, diff.prev, diff.d, reset_mask, reset_all, F)
         return F
 
     def _generate(self, o: dict[str, np.ndarray]):

@@ -1,7 +1,8 @@
 """The compiled passes of HierarchicalController give, bit for bit, what the numpy composition
 of predict_target / reference_point / outer_loop / inner_loop gives (``_fused = False``), on
-both layouts, every variant, resets, held envs and odd values; the reference cache is used
-only for the same bits and never goes stale."""
+both layouts, every variant, resets, held envs and odd values, serial and (from
+THREADED_MIN_ENVS envs) on numba's threads; the reference cache is used only for the same bits
+and never goes stale."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1, OBS_INDEX, OBS_INDEX_V1
 from auv_follow_env.params import make_task_spec
 from controllers import make_controller
 from controllers.base import ScriptedPolicy
+from controllers.hierarchical import THREADED_MIN_ENVS
 
 S4 = make_task_spec("S4")
 
@@ -59,7 +61,8 @@ def test_fused_law_is_bit_identical_to_the_numpy_composition(name, width):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         for k in range(12):
-            n = 40 if k < 8 else 17  # a new batch size restarts every env
+            # a new batch size restarts every env; from THREADED_MIN_ENVS envs the passes run on threads
+            n = (40 if k < 5 else THREADED_MIN_ENVS + 44) if k < 8 else 17
             o = _batch(rng, n, width, odd=k % 2 == 0)
             obs = o.astype(np.float32) if k % 3 == 0 else o
             start = rng.uniform(size=n) < 0.25 if k % 4 == 1 else None
