@@ -444,7 +444,7 @@ def _ix(typingctx, row, b):
     return sig, codegen
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _sincos_rows(wk, src, sin_row, cos_row, m, fast):
     """sin/cos of lanes 0..m-1 of row ``src`` into rows ``sin_row`` and ``cos_row`` (all three
     distinct): libm (scalar calls), or fast_sincos in a SIMD loop with libm for the lanes whose
@@ -470,7 +470,7 @@ def _sincos_rows(wk, src, sin_row, cos_row, m, fast):
             wk[_ix(cos_row, b)] = math.cos(x)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _tone_values(wk, m, fast):
     """sin/cos of the ten tones at each lane's time (row K_T0) into rows K_S.., K_C.. (row K_OUT,
     free outside the RK4 step, holds each tone's arguments meanwhile)."""
@@ -480,14 +480,14 @@ def _tone_values(wk, m, fast):
         _sincos_rows(wk, K_OUT, K_S + j, K_C + j, m, fast)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _heading_values(wk, m, fast):
     """cos/sin of both headings (state rows K_ST + 2, K_ST + 8) into rows K_C0, K_S0, K_CT, K_STT."""
     _sincos_rows(wk, K_ST + 2, K_S0, K_C0, m, fast)
     _sincos_rows(wk, K_ST + 8, K_STT, K_CT, m, fast)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _trig_values(wk, m, fast):
     """:func:`_tone_values` and :func:`_heading_values`: the sin/cos at a step's start, for a block.
     Not inlined (called once per block): one compiled copy for the step's refresh, the reset's
@@ -571,7 +571,7 @@ def _rk4_block_lane(wk, h, b, exact):
                     _load7(wk, K_F0, b), _load7(wk, K_FM, b), _load7(wk, K_F1, b), exact)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _rotation_factors(wk, hh, m):
     """cos/sin of each tone's half-substep angle omega * hh into rows K_RC.., K_RS..: small-angle
     polynomials, libm for the lanes beyond SMALL_ANGLE. A tone's row is recomputed only if some
@@ -773,24 +773,33 @@ def _bitcast(name: str, frm, to, ll_to, doc: str):
     return intrinsic(cast)
 
 
-_bits = _bitcast("_bits", types.float64, types.int64, llir.IntType(64),
-                 "The IEEE-754 bits of the float64 ``x`` as an int64 (a bit cast).")
-_from_bits = _bitcast("_from_bits", types.int64, types.float64, llir.DoubleType(),
-                      "The float64 whose IEEE-754 bits are the int64 ``x`` (a bit cast).")
+_bits = _bitcast("_bits", types.float64, types.uint64, llir.IntType(64),
+                 "The IEEE-754 bits of the float64 ``x`` as a uint64 (a bit cast).")
+_from_bits = _bitcast("_from_bits", types.uint64, types.float64, llir.DoubleType(),
+                      "The float64 whose IEEE-754 bits are the uint64 ``x`` (a bit cast).")
+_U32, _U20 = np.uint64(32), np.uint64(20)
+_U_MANT, _U_SQRT2, _U_CARRY = np.uint64(0x000FFFFF), np.uint64(0x95F64), np.uint64(0x100000)
+_U_ONE, _U_LOW = np.uint64(0x3FF00000), np.uint64(0xFFFFFFFF)
+_U_TWO52, _TWO52_BIAS = np.uint64(0x4330000000000000), 4503599627370496.0 + 1023.0  # 2^52 as bits; 2^52 + 1023
+_U_NEAR_LO, _U_NEAR_HI = np.uint64(0x6147A), np.uint64(0x6B851)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def fast_log(x):
     """log x within 1 ULP for positive normal x (fdlibm's method, branch-free: vectorises).
-    Not for 0, subnormals, infinities or NaN (the callers pass uniforms in (0, 1])."""
-    hx = _bits(x) >> 32
-    k = (hx >> 20) - 1023
-    hx &= 0x000FFFFF
-    i = (hx + 0x95F64) & 0x100000  # whether the mantissa is >= sqrt(2): then halve it
-    xm = _from_bits(((hx | (i ^ 0x3FF00000)) << 32) | (_bits(x) & 0xFFFFFFFF))
-    k += i >> 20
+    Not for 0, subnormals, infinities or NaN (the callers pass uniforms in (0, 1]).
+
+    Unsigned 64-bit integer operations only, and the exponent converted to a double by the
+    2^52 trick: AVX2 has no 64-bit arithmetic shift or int64-to-double conversion, without
+    which a loop of it would not vectorise."""
+    ix = _bits(x)
+    hx = ix >> _U32
+    m = hx & _U_MANT  # the high 20 bits of the mantissa
+    i = (m + _U_SQRT2) & _U_CARRY  # whether the mantissa is >= sqrt(2): then halve it
+    xm = _from_bits(((m | (i ^ _U_ONE)) << _U32) | (ix & _U_LOW))
+    e = (hx >> _U20) + (i >> _U20)  # the biased exponent (x > 0: no sign bit), + 1 where halved
+    dk = _from_bits(_U_TWO52 | e) - _TWO52_BIAS  # e - 1023 exactly
     f = xm - 1.0
-    dk = float(k)
     s = f / (2.0 + f)
     z = s * s
     w = z * z
@@ -798,7 +807,7 @@ def fast_log(x):
     t2 = z * (_LG1 + w * (_LG3 + w * (_LG5 + w * _LG7)))
     r = t2 + t1
     hfsq = 0.5 * f * f
-    near = ((hx - 0x6147A) | (0x6B851 - hx)) > 0  # 1 + f in [1.38, 1.42): the f^2/2 form
+    near = (m >= _U_NEAR_LO) & (m <= _U_NEAR_HI)  # 1 + f in [1.38, 1.42]: the f^2/2 form
     a = dk * _LN2_HI - ((hfsq - (s * (hfsq + r) + dk * _LN2_LO)) - f)
     b = dk * _LN2_HI - ((s * (f - r) - dk * _LN2_LO) - f)
     return a if near else b
@@ -827,7 +836,7 @@ def _normal_at(wk, b, j):
     return wk[_ix(K_U1 + q, b)] * wk[_ix((K_ZS if j & 1 else K_ZC) + q, b)]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def update_processes_block(proc, rs, p, m, wk, fast):
     """:func:`update_processes` for the envs of lanes 0..m-1 (env indices in row K_ENV; the same
     draws and updates per env; see the comment above K_U1): per env its uniforms, then the
@@ -888,7 +897,7 @@ def update_processes_block(proc, rs, p, m, wk, fast):
             proc[i, R_CGY] = sp * wk[_ix(K_CDS, b)]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def update_processes_all(proc, rs, p, steps, fast):
     """:func:`update_processes_block` over every env, block by block as the step runs it, for
     ``steps`` control steps (for the tests and the speed benchmark)."""
@@ -1140,7 +1149,7 @@ def thrusters(proc, p, cfg, i, fu, fv, fr):
     return fu, fv, fr
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _observe(state, k, proc, p, cfg, i, obs, truth):
     """Fill obs[i] (what the follower has) and truth[i] (evaluation only); return error.
 
@@ -1158,7 +1167,7 @@ def _observe(state, k, proc, p, cfg, i, obs, truth):
     return _observe_dp_r(state, k, proc, p, cfg, i, obs, truth, cdp, sdp)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _observe_dp(state, k, proc, p, cfg, i, obs, truth, cdp, sdp):
     """:func:`_observe` given (cos, sin) of the held packet's heading minus the follower's,
     ``proc[i, R_HX + 2] - state[i, 2]`` (computed for a block at once by the step), with env i's
