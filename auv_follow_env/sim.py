@@ -62,8 +62,7 @@ def _param_rows(rows: np.ndarray, vehicle, target_speed, surge_amp, surge_period
     # constant latency set by link_row (or config_vector's delay)
     for col in (dyn.P_OUU_A, dyn.P_OUR_A, dyn.P_CS_A, dyn.P_DN_A, dyn.P_TH_ALPHA, dyn.P_PER, dyn.P_LAT_CORR):
         rows[..., col] = 1.0
-    for col in (dyn.P_ULO,):
-        rows[..., col] = -math.inf
+    rows[..., dyn.P_ULO] = -math.inf
     for col in (dyn.P_UHI, dyn.P_RMAX, dyn.P_TH_RATE):
         rows[..., col] = math.inf
     rows[..., dyn.P_LAT_MEAN] = latency_steps
