@@ -53,6 +53,7 @@ the target's state at step k - tau / dt exactly, as the delay line of eq. (12).
 from __future__ import annotations
 
 import math
+import types as pytypes
 
 import numpy as np
 from llvmlite import ir as llir
@@ -745,6 +746,7 @@ K_U2 = K_F0 + 4  # pair j's angle 2 pi u2
 K_ZS, K_ZC = K_F0 + 8, K_F0 + 12  # sin and cos of pair j's angle
 K_CD, K_CDS, K_CDC = K_F0 + 16, K_F0 + 17, K_F0 + 18  # the current's direction, its sin and cos
 K_ENV = K_F0 + 19  # the lane's env index (set by the caller)
+K_NN = K_F0 + 20  # the number of normals the lane's env draws per step
 K_DP, K_DPS, K_DPC = K_F0, K_F0 + 1, K_F0 + 2  # after the processes: the observation's relative
 #   heading (held packet's minus the follower's), its sin and cos
 _NPAIR = 4  # at most seven normals per env and step: four pairs
@@ -844,8 +846,10 @@ def update_processes_block(proc, rs, p, m, wk, fast):
     npair_max = 0
     for b in range(m):
         i = int(wk[_ix(K_ENV, b)])
+        n = _n_normals(p, i)
+        wk[_ix(K_NN, b)] = n
         has = int(proc[i, R_GAUSS_HAS] != 0.0)
-        npair = max(0, _n_normals(p, i) - has + 1) // 2
+        npair = max(0, n - has + 1) // 2
         npair_max = max(npair_max, npair)
         for j in range(_NPAIR):
             if j < npair:
@@ -867,7 +871,7 @@ def update_processes_block(proc, rs, p, m, wk, fast):
     moved_any = False
     for b in range(m):
         i = int(wk[_ix(K_ENV, b)])
-        n = _n_normals(p, i)
+        n = int(wk[_ix(K_NN, b)])
         j = -1 if proc[i, R_GAUSS_HAS] != 0.0 and n > 0 else 0  # -1: the cached normal first
         for c in range(7):
             col = _PROC_STD[c]
@@ -1254,11 +1258,19 @@ def _called(disp):
     return njit(cache=True, **opts)(disp.py_func)
 
 
+def recompiled(f, name: str, subs: dict | None = None, **opts):
+    """A new dispatcher compiled from the Python function ``f`` (the same code object) under the
+    name ``name`` (so that its on-disk cache is its own), with the module globals ``subs``
+    replaced, and numba's options ``opts`` (e.g. ``parallel=True``)."""
+    fn = pytypes.FunctionType(f.__code__, {**f.__globals__, **(subs or {})}, name, f.__defaults__, f.__closure__)
+    fn.__qualname__ = name
+    fn.__doc__ = f.__doc__
+    return njit(**opts)(fn)
+
+
 _link_tick_r = _called(link_tick)
-_update_processes_r = _called(update_processes)
 _update_processes_block_r = _called(update_processes_block)
 _load_random_forcing_r = _called(_load_random_forcing)
-_observe_r = _observe  # (not inlined anywhere)
 _observe_dp_r = _called(_observe_dp)
 _thrusters_r = _called(thrusters)
 _refresh_trig_r = _called(refresh_trig)
@@ -1348,7 +1360,7 @@ def _place_follower(state, k, proc, p, cfg, i, obs, truth):
     state[i, 4] = 0.0
     state[i, 5] = 0.0
     k[i] = 0
-    _observe_r(state, k, proc, p, cfg, i, obs, truth)
+    _observe(state, k, proc, p, cfg, i, obs, truth)
 
 
 def error_samples(err_hist, err_stage, i, n):

@@ -23,7 +23,6 @@ offset), then cfg, state, k (int64), rs (uint64), proc, params, truth, rew, term
 from __future__ import annotations
 
 import hashlib
-import types as pytypes
 from pathlib import Path
 
 import numpy as np
@@ -135,14 +134,10 @@ def _gather_one(state, p, a, m, wk):
 
 def _rebound(disp, **subs):
     """A new dispatcher compiled from ``disp``'s own Python function (the same code object), with
-    the globals ``subs`` replaced."""
+    the globals ``subs`` replaced (not cached on its own: step_one's cache holds it)."""
     f = disp.py_func
-    glb = {**f.__globals__, **subs}
-    fn = pytypes.FunctionType(f.__code__, glb, f.__name__, f.__defaults__, f.__closure__)
-    fn.__qualname__ = f"{f.__qualname__}_one"
-    fn.__doc__ = f.__doc__
     opts = {k: v for k, v in disp.targetoptions.items() if k != "nopython"}
-    return njit(**{**opts, "cache": False})(fn)
+    return dyn.recompiled(f, f"{f.__qualname__}_one", subs, **{**opts, "cache": False})
 
 
 #: dynamics.step_range, the same code, calling the one-lane block functions, and calling (not

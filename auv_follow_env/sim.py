@@ -326,6 +326,7 @@ class _Episodes:
         self.kernel: tuple = (dyn.reset_kernel, ())
         self.keys: list[str] = []  #: v1: the condition's fields, in info["condition"]'s order
         self.numeric: list[str] = []  #: those with numbers (columns of cond)
+        self.col: dict[str, int] = {}  #: their column in cond
         self.fixed: dict[str, object] = {}  #: the others (the same for every episode of a config)
         self.cond: np.ndarray | None = None  #: (N, len(numeric)): each env's present condition
         self.gen: list[np.random.Generator | None] = [None] * self.n  #: each env's generator
@@ -343,6 +344,7 @@ class _Episodes:
         if not self.keys:
             self.keys = list(cond)
             self.numeric = [k for k in cond if _numeric(cond[k])]
+            self.col = {key: j for j, key in enumerate(self.numeric)}
             self.fixed = {k: v for k, v in cond.items() if not _numeric(v)}
             self.cond = np.full((self.n, len(self.numeric)), np.nan)
             self.next_cond = np.full((self.n, len(self.numeric)), np.nan)
@@ -410,14 +412,14 @@ class _Episodes:
         self.ready[todo] = True
 
     def condition(self, i: int) -> dict[str, object]:
-        col = {key: j for j, key in enumerate(self.numeric)}
+        col = self.col
         return {key: float(self.cond[i, col[key]]) if key in col else self.fixed[key] for key in self.keys}
 
     def conditions(self, mask: np.ndarray) -> dict[str, np.ndarray]:
         ids = np.flatnonzero(mask)
         block = np.full(self.cond.shape, np.nan)
         block[ids] = self.cond[ids]
-        col = {key: j for j, key in enumerate(self.numeric)}
+        col = self.col
         out = {}
         for key in self.keys:
             if key in col:
@@ -514,7 +516,7 @@ class BatchSim:
     calls. Within 1 ULP of each other, not bit-identical (see the env docs).
 
     ``draw_ahead`` (v1; the vector env): draw each env's next episode ahead, several envs per
-    call (:class:`_V1Episodes`; the same episodes in the same order, but the generators passed
+    call (:class:`_Episodes`; the same episodes in the same order, but the generators passed
     to :meth:`reset` advance before the episode starts: only for generators nobody else uses).
     """
 

@@ -28,13 +28,13 @@ observation reuses it (evaluation calls ``reference`` on the observation the nex
 from __future__ import annotations
 
 import math
-import types
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 from numba import njit, prange
 
+from auv_follow_env.dynamics import recompiled
 from auv_follow_env.layout import LAYOUTS, OBS_DIM_V1, OBS_INDEX, OBS_INDEX_V1, decode
 from auv_follow_env.params import TaskSpec
 from controllers.base import FilteredDerivative, ScriptedPolicy, sat, wrap_to_pi
@@ -272,17 +272,11 @@ def _law_pass(a, ref, c, s, neg, hold_col, pdx, pdy, gain, model, fa, fb, prev, 
         F[i, 2] = i_z * rd_dot + n_r * r - k_r * e_r - rho2 * _sat(e_r / phi2)
 
 
-def _threaded(f, name: str):
-    """``f`` compiled with numba's threads (its ``prange`` loop split among them): a function of
-    its own name, so that its on-disk cache is its own."""
-    g = types.FunctionType(f.__code__, f.__globals__, name, f.__defaults__, f.__closure__)
-    g.__qualname__ = name
-    return njit(cache=True, parallel=True)(g)
-
-
 #: the passes, serial and on numba's threads (per env the same arithmetic: the same bits)
-_reference_serial, _reference_threads = njit(cache=True)(_reference_all), _threaded(_reference_all, "_reference_par")
-_law_serial, _law_threads = njit(cache=True)(_law_pass), _threaded(_law_pass, "_law_par")
+_reference_serial = njit(cache=True)(_reference_all)
+_reference_threads = recompiled(_reference_all, "_reference_par", cache=True, parallel=True)
+_law_serial = njit(cache=True)(_law_pass)
+_law_threads = recompiled(_law_pass, "_law_par", cache=True, parallel=True)
 #: batches from this many envs run the passes on numba's threads (as the vector env's steps)
 THREADED_MIN_ENVS = 256
 
