@@ -303,7 +303,16 @@ def cos_sin_small(d, exact=True):
     compile-time constant in the block kernels) drops the libm branch so a loop over envs
     vectorises; those callers flag the lanes with |d| > 0.25 and redo them with ``exact=True``.
     """
-    if exact and abs(d) > SMALL_ANGLE:
+    if exact:
+        return _cos_sin_exact(d)
+    return _taylor_cos_sin(d)
+
+
+@njit(cache=True, error_model="numpy")
+def _cos_sin_exact(d):
+    """:func:`cos_sin_small` with libm beyond SMALL_ANGLE; called, not inlined (compiled once for
+    the RK4 lane's seven increments, cold start)."""
+    if abs(d) > SMALL_ANGLE:
         return math.cos(d), math.sin(d)
     return _taylor_cos_sin(d)
 
@@ -445,8 +454,16 @@ def _ix(typingctx, row, b):
     return sig, codegen
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always")
 def _sincos_rows(wk, src, sin_row, cos_row, m, fast):
+    """sin/cos of lanes 0..m-1 of row ``src`` into rows ``sin_row`` and ``cos_row`` (all three
+    distinct): :func:`_sincos_rows_r`, called with runtime ints (numba compiles a called function
+    once per literal argument: one compiled copy for every use, cold start)."""
+    _sincos_rows_r(wk, np.int64(src), np.int64(sin_row), np.int64(cos_row), np.int64(m), fast)
+
+
+@njit(cache=True, error_model="numpy")
+def _sincos_rows_r(wk, src, sin_row, cos_row, m, fast):
     """sin/cos of lanes 0..m-1 of row ``src`` into rows ``sin_row`` and ``cos_row`` (all three
     distinct): libm (scalar calls), or fast_sincos in a SIMD loop with libm for the lanes whose
     argument exceeds FAST_TRIG_MAX."""
@@ -613,6 +630,10 @@ def _redo_lane(wk, h, b):
     _store9(wk, K_OUT, b, out)
 
 
+#: True only in kernel_one's recompiled copy of :func:`advance_block` (blocks of one env)
+_ONE_LANE = False
+
+
 @njit(cache=True, error_model="numpy")
 def advance_block(wk, dt, nsub, m, fast):
     """Advance the m lanes of a block by dt from their times (row K_T0) in nsub RK4
@@ -647,16 +668,22 @@ def advance_block(wk, dt, nsub, m, fast):
                 _forcing_lane(wk, K_S, row, b)
         if sub > 0:  # cos/sin of both headings at the substep's start
             _heading_values(wk, m, fast)
-        nbig = 0
-        for b in range(m):
-            out, big = _rk4_block_lane(wk, h, b, False)
-            _store9(wk, K_OUT, b, out)
-            wk[_ix(K_BIG, b)] = 1.0 if big else 0.0
-            nbig += big
-        if nbig:  # lanes with a large heading increment: redo them with libm cos/sin
+        if _ONE_LANE:
+            # (kernel_one's copy, for a block of one env) the lane's step with libm beyond
+            # SMALL_ANGLE at once, which is what the block path below gives (the same
+            # polynomials up to SMALL_ANGLE); numba prunes the other path before compiling it
+            _redo_lane(wk, h, 0)
+        else:
+            nbig = 0
             for b in range(m):
-                if wk[_ix(K_BIG, b)] != 0.0:
-                    _redo_lane(wk, h, b)
+                out, big = _rk4_block_lane(wk, h, b, False)
+                _store9(wk, K_OUT, b, out)
+                wk[_ix(K_BIG, b)] = 1.0 if big else 0.0
+                nbig += big
+            if nbig:  # lanes with a large heading increment: redo them with libm cos/sin
+                for b in range(m):
+                    if wk[_ix(K_BIG, b)] != 0.0:
+                        _redo_lane(wk, h, b)
         for c in range(9):
             for b in range(m):
                 wk[_ix(K_ST + c, b)] = wk[_ix(K_OUT + c, b)]

@@ -10,8 +10,12 @@ reads no numpy scalars. The step itself is ``step_range``'s own code (not a copy
 a second dispatcher of the same Python function) whose block functions ``advance_block`` and
 ``gather_block`` are called with the lane count as the literal 1, so numba compiles them for a
 block of one lane, where every loop over lanes is a single iteration known at compile time.
-Same operations in the same order: results are bit-identical to the vector env's
-(tests/test_kernel_one.py compares every array after every step). :func:`reset_one` is
+``advance_block`` is its one-lane copy (``_ONE_LANE``): the lane's RK4 step with libm beyond
+SMALL_ANGLE at once, where the block path runs small-angle polynomials in a SIMD loop and
+redoes the rare lanes beyond it; for every lane both give the same operations, and a single
+env compiles one RK4 step instead of two (cold start). Same operations in the same order:
+results are bit-identical to the vector env's (tests/test_kernel_one.py compares every array
+after every step, also with heading increments beyond SMALL_ANGLE). :func:`reset_one` is
 ``reset_kernel``'s code in the same way, sharing the one-lane ``advance_block`` with the step,
 so a single env compiles one specialisation of it (cold start, issue 23).
 
@@ -114,6 +118,12 @@ def _views(buf):
             carray(_address(buf, O_TERM), 1, np.bool_))
 
 
+#: dynamics.advance_block with its one-lane path (``_ONE_LANE``): the lane's RK4 step compiled once,
+#: with libm beyond SMALL_ANGLE, instead of the block path's SIMD copy plus the redo (cold start)
+_advance_block_one = dyn.recompiled(dyn.advance_block.py_func, "advance_block_one", {"_ONE_LANE": True},
+                                    cache=False, error_model="numpy")
+
+
 @njit(inline="always")
 def _advance_one(wk, dt, nsub, m, fast):
     """:func:`~auv_follow_env.dynamics.advance_block` of a one-lane block, with the lane count a
@@ -121,7 +131,7 @@ def _advance_one(wk, dt, nsub, m, fast):
     over lanes is one iteration known at compile time; the single env's reset and step share it)."""
     if m != 1:
         raise AssertionError("kernel_one: a block of one env expected")
-    dyn.advance_block(wk, dt, nsub, 1, fast)
+    _advance_block_one(wk, dt, nsub, 1, fast)
 
 
 @njit(inline="always")

@@ -98,6 +98,32 @@ def test_step_one_equals_step_kernel_bit_for_bit(scenario, kw, fast):
     assert ends >= 4 and resets >= 2
 
 
+@pytest.mark.parametrize("fast", [False, True], ids=["libm", "simd"])
+def test_step_one_equals_step_kernel_beyond_the_small_angle(fast):
+    # The block kernel integrates with small-angle polynomials for the heading increments and
+    # redoes a lane whose increment exceeds SMALL_ANGLE with libm; the one-lane kernel takes the
+    # libm-beyond-SMALL_ANGLE path at once. Both must give the same bits when the follower
+    # spins (|r| h / 2 beyond SMALL_ANGLE) and when it does not, and when the target turns fast.
+    a, b = _pair("S4", {"version": "v1", "tier": "Hard"}, fast)
+    kernel, buf = b.step_one_call()
+    a.reset(IDX0, [np.random.default_rng(4)])
+    b.reset(IDX0, [np.random.default_rng(4)])
+    hh = a.config.dt / a.config.physics_substeps / 2
+    spin = 1.5 * dyn.SMALL_ANGLE / hh  # [rad/s]: the first stage's heading increment r h / 2 is beyond it
+    for sim in (a, b):
+        sim.params[0, dyn.P_TAR] = spin  # the target's yaw-rate tone and its bound: it turns as fast
+        sim.params[0, dyn.P_RMAX] = 2.0 * spin
+    rng = np.random.default_rng(5)
+    for t in range(40):
+        if t % 10 == 0:  # now and then spin the follower up (the state arrays are the sims' own)
+            a.state[0, 5] = b.state[0, 5] = spin * (1.0 if t % 20 else -1.0)
+        act = rng.uniform(-1.0, 1.0, 3)
+        assert a.step(act) == -1
+        assert kernel(buf, act)[0] == -1
+        _assert_same(a, b, f"step {t}")
+    assert not np.array_equal(a.state[0], np.zeros(9))
+
+
 def test_step_one_rejects_non_finite_actions_unchanged():
     a, b = _pair("S4", {"version": "v1", "tier": "Extreme"}, False)
     a.reset(IDX0, [np.random.default_rng(0)])
