@@ -1186,9 +1186,9 @@ def _observe(state, k, proc, p, cfg, i, obs, truth):
 
     The tones and heading cos/sin come from env i's cache (:func:`refresh_trig`). For the reset
     (once per episode; the step computes the relative heading's sin/cos a block at a time and
-    calls :func:`_observe_dp` itself), so it calls the compiled ``_observe_dp_r`` shared with the
-    single env's step instead of inlining it (cold start)."""
-    refresh_trig(state, k, proc, p, cfg, i)
+    calls :func:`_observe_dp` itself), so it calls the compiled ``_refresh_trig_r`` and
+    ``_observe_dp_r`` shared with the single env's step instead of inlining them (cold start)."""
+    _refresh_trig_r(state, k, proc, p, cfg, i)
     dpsi = proc[i, R_HX + 2] - state[i, 2]
     if cfg[C_FAST] != 0.0 and abs(dpsi) <= FAST_TRIG_MAX:
         sdp, cdp = fast_sincos(dpsi)
