@@ -223,6 +223,11 @@ def bench_size(args: Args, n: int, rng: np.random.Generator) -> dict[str, float]
     return row
 
 
+def cases_of(steady: dict[str, float]) -> list[str]:
+    """The rate entries of :func:`steady_state`'s result (the others are its reset counts)."""
+    return [c for c in steady if not c.endswith(("_ends", "_warm", "_len"))]
+
+
 def steady_state(args: Args, n: int) -> dict[str, float]:
     """Env-steps/s of the native envs at N = n after ``args.burn`` control steps of random actions:
     right after a reset no episode has ended yet, while a long run (training, Monte Carlo) restarts
@@ -237,7 +242,19 @@ def steady_state(args: Args, n: int) -> dict[str, float]:
         env = _native(env_id, n, args.seed, par)
         for j in range(args.burn):
             env.step(acts(j))
-        out[name] = max(rate(lambda j, e=env: e.step(acts(j)), n, args.budget) for _ in range(args.repeats))
+        ends = [0, 0]  # episode ends, env-steps stepped
+
+        def step(j: int, e=env, ends=ends) -> None:
+            res = e.step(acts(j))
+            ends[0] += int(np.count_nonzero(res[2] | res[3]))
+            ends[1] += n
+
+        out[name] = max(rate(step, n, args.budget) for _ in range(args.repeats))
+        if not par:  # each reset simulates the episode's warm-up (target, link, processes)
+            cfg = env.unwrapped._sim.cfg
+            out[name + "_ends"] = ends[0] / ends[1]
+            out[name + "_warm"] = float(cfg[dyn.C_WARM])
+            out[name + "_len"] = float(cfg[dyn.C_NSTEPS])
         env.close()
     return out
 
@@ -519,6 +536,16 @@ def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after:
                      f"{verdict(steady['native'], 1.8e6)}"
                      + (f"; both cores {fmt(steady['parallel'])} (goal >= 3M: {verdict(steady['parallel'], 3e6)}), "
                         f"{args.tier_id} {fmt(steady['tier_parallel'])}" if "parallel" in steady else ""))
+        if "native_warm" in steady:
+            lines.append("  (resets: each episode starts with a warm-up of the target, the link and the processes; "
+                         "in the timed steps (random actions) "
+                         + "; ".join(f"{eid} {1000 * steady[c + '_ends']:.2f} episode ends per 1,000 env-steps x "
+                                     f"{steady[c + '_warm']:.0f} warm-up steps = "
+                                     f"{100 * steady[c + '_ends'] * steady[c + '_warm']:.1f} % more simulated steps "
+                                     f"({100 * steady[c + '_warm'] / steady[c + '_len']:.0f} % with full "
+                                     f"{steady[c + '_len']:.0f}-step episodes)"
+                                     for eid, c in ((args.env_id, "native"), (args.tier_id, "tier")))
+                         + ")")
     kns = 1e9 / row["kernel"]
     kls = 1e9 / row["kernel_libm"]
 
@@ -660,7 +687,8 @@ def main(argv: list[str] | None = None) -> str:
     n = max(args.sizes)
     steady = steady_state(args, n) if args.burn else None
     if steady:
-        print(f"steady state N={n}: " + ", ".join(f"{c} {fmt(v)}" for c, v in steady.items()), flush=True)
+        print(f"steady state N={n}: " + ", ".join(f"{c} {fmt(v)}" for c, v in steady.items() if c in cases_of(steady)),
+              flush=True)
     prof = profile(args, n) if n >= dyn.BLOCK else None
     tier_prof = profile(args, n, args.tier_id) if n >= dyn.BLOCK else None
     machine = machine_throughput(args.budget, args.repeats)
