@@ -467,6 +467,15 @@ def _sincos_rows_r(wk, src, sin_row, cos_row, m, fast):
     """sin/cos of lanes 0..m-1 of row ``src`` into rows ``sin_row`` and ``cos_row`` (all three
     distinct): libm (scalar calls), or fast_sincos in a SIMD loop with libm for the lanes whose
     argument exceeds FAST_TRIG_MAX."""
+    if m == 1:  # (the single env's blocks) no loop
+        x = wk[_ix(src, 0)]
+        if fast and abs(x) <= FAST_TRIG_MAX:
+            sv, cv = fast_sincos(x)
+        else:
+            sv, cv = math.sin(x), math.cos(x)
+        wk[_ix(sin_row, 0)] = sv
+        wk[_ix(cos_row, 0)] = cv
+        return
     if fast:
         nbig = 0
         for b in range(m):
