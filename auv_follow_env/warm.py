@@ -3,7 +3,7 @@
 numba compiles the kernels at their first call and keeps the machine code in its on-disk
 cache (``__pycache__`` beside the sources, or ``NUMBA_CACHE_DIR``); later processes load it in
 well under a second. On a fresh clone the first ``reset(); step(a)`` therefore pays the
-compilation: about 25 s of CPU for the single env on this project's 2-core machines, 15-30 s
+compilation: about 20 s of CPU for the single env on this project's 2-core machines, 15-30 s
 more for each of the vector env's serial and threaded kernels (results/bench_vector.md).
 ``scripts/setup.sh`` runs this module once after installing, so the first step a newcomer
 takes loads from the cache instead; with the cache in place the module takes a second or two.
