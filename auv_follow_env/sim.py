@@ -238,15 +238,23 @@ def _numeric(v: object) -> bool:
     return isinstance(v, np.ndarray) or (isinstance(v, (int, float)) and not isinstance(v, bool))
 
 
+@functools.cache
+def _field_names(cls: type) -> tuple[str, ...]:
+    """The field names of the dataclass ``cls``, in order."""
+    return tuple(f.name for f in dataclasses.fields(cls))
+
+
 class _Drawn:
-    """The condition of n episodes, field by field: a drawn field's (n,) values, else the fixed value."""
+    """The condition of n episodes, field by field: a drawn field's (n,) values, else the fixed value.
+    (Plain instance attributes: a reset of a few envs reads about ninety of them.)"""
 
-    def __init__(self, c: Condition, drawn: dict[str, np.ndarray]) -> None:
-        self._c, self._drawn = c, drawn
+    def __init__(self, c: Condition | VehicleParams, drawn: dict[str, object]) -> None:
+        self.__dict__.update({name: getattr(c, name) for name in _field_names(type(c))})
+        self.__dict__.update(drawn)
+        self.__dict__["_c"] = c
 
-    def __getattr__(self, name: str):
-        d = self.__dict__["_drawn"]
-        return d[name] if name in d else getattr(self.__dict__["_c"], name)
+    def __getattr__(self, name: str):  # (only for what is not a field: c's properties)
+        return getattr(self.__dict__["_c"], name)
 
 
 def sample_params_v1_many(config: EnvConfig, rngs: list[np.random.Generator]
@@ -288,7 +296,7 @@ def sample_params_v1_many(config: EnvConfig, rngs: list[np.random.Generator]
     if cc.current_direction_rad is not None:
         directions = np.broadcast_to(np.asarray(cc.current_direction_rad, dtype=np.float64), (n,)).copy()
     link_row(rows, cc, config.dt, vehicle)
-    condition = {**{f.name: getattr(cc, f.name) for f in dataclasses.fields(c)}, "mismatch": mismatch,
+    condition = {**{name: getattr(cc, name) for name in _field_names(type(c))}, "mismatch": mismatch,
                  "current_direction_rad": directions, "current_x": current[0], "current_y": current[1]}
     return rows, seeds, directions, condition
 
