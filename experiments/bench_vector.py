@@ -223,21 +223,18 @@ def bench_size(args: Args, n: int, rng: np.random.Generator) -> dict[str, float]
     return row
 
 
-def cases_of(steady: dict[str, float]) -> list[str]:
-    """The rate entries of :func:`steady_state`'s result (the others are its reset counts)."""
-    return [c for c in steady if not c.endswith(("_ends", "_warm", "_len"))]
-
-
-def steady_state(args: Args, n: int) -> dict[str, float]:
+def steady_state(args: Args, n: int) -> tuple[dict[str, float], dict[str, tuple[float, float, float]]]:
     """Env-steps/s of the native envs at N = n after ``args.burn`` control steps of random actions:
     right after a reset no episode has ended yet, while a long run (training, Monte Carlo) restarts
     about one env in (episode length) per step; each env's reset (its parameters and the
-    target's and link's warm-up) is part of the rate. Columns as :func:`bench_size`'s."""
+    target's and link's warm-up) is part of the rate. Returns (rates, columns as
+    :func:`bench_size`'s; resets: per single-threaded column, the episode ends per env-step in the
+    timed steps, the warm-up steps of each episode and the steps of a full episode)."""
     acts = _cycle(np.random.default_rng(args.seed).uniform(-1.0, 1.0, (8, n, 3)).astype(np.float32))
     cases = {"native": (args.env_id, False), "tier": (args.tier_id, False)}
     if args.parallel:
         cases.update({"parallel": (args.env_id, True), "tier_parallel": (args.tier_id, True)})
-    out = {}
+    out, resets = {}, {}
     for name, (env_id, par) in cases.items():
         env = _native(env_id, n, args.seed, par)
         for j in range(args.burn):
@@ -252,11 +249,9 @@ def steady_state(args: Args, n: int) -> dict[str, float]:
         out[name] = max(rate(step, n, args.budget) for _ in range(args.repeats))
         if not par:  # each reset simulates the episode's warm-up (target, link, processes)
             cfg = env.unwrapped._sim.cfg
-            out[name + "_ends"] = ends[0] / ends[1]
-            out[name + "_warm"] = float(cfg[dyn.C_WARM])
-            out[name + "_len"] = float(cfg[dyn.C_NSTEPS])
+            resets[name] = (ends[0] / ends[1], float(cfg[dyn.C_WARM]), float(cfg[dyn.C_NSTEPS]))
         env.close()
-    return out
+    return out, resets
 
 
 # --- profile of the batched step ------------------------------------------------------------
@@ -494,7 +489,8 @@ def fmt(x: float) -> str:
 def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after: str,
            prof: dict[str, float] | None, machine: dict[str, float], policy: float,
            policy_libm: float = float("nan"), cold: dict[str, dict[str, float]] | None = None,
-           tier_prof: dict[str, float] | None = None, steady: dict[str, float] | None = None) -> str:
+           tier_prof: dict[str, float] | None = None, steady: dict[str, float] | None = None,
+           resets: dict[str, tuple[float, float, float]] | None = None) -> str:
     threads = numba.get_num_threads()
     lines = [f"# Vector env speed: {args.env_id} (and {args.tier_id}), env-steps/s", "",
              f"Machine: {platform.processor() or platform.machine()} ({_cpu_target()}), {os.cpu_count()} CPUs, Python "
@@ -536,15 +532,14 @@ def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after:
                      f"{verdict(steady['native'], 1.8e6)}"
                      + (f"; both cores {fmt(steady['parallel'])} (goal >= 3M: {verdict(steady['parallel'], 3e6)}), "
                         f"{args.tier_id} {fmt(steady['tier_parallel'])}" if "parallel" in steady else ""))
-        if "native_warm" in steady:
+        if resets:
             lines.append("  (resets: each episode starts with a warm-up of the target, the link and the processes; "
                          "in the timed steps (random actions) "
-                         + "; ".join(f"{eid} {1000 * steady[c + '_ends']:.2f} episode ends per 1,000 env-steps x "
-                                     f"{steady[c + '_warm']:.0f} warm-up steps = "
-                                     f"{100 * steady[c + '_ends'] * steady[c + '_warm']:.1f} % more simulated steps "
-                                     f"({100 * steady[c + '_warm'] / steady[c + '_len']:.0f} % with full "
-                                     f"{steady[c + '_len']:.0f}-step episodes)"
-                                     for eid, c in ((args.env_id, "native"), (args.tier_id, "tier")))
+                         + "; ".join(f"{eid} {1000 * ends:.2f} episode ends per 1,000 env-steps x "
+                                     f"{warm:.0f} warm-up steps = {100 * ends * warm:.1f} % more simulated steps "
+                                     f"({100 * warm / length:.0f} % with full {length:.0f}-step episodes)"
+                                     for eid, (ends, warm, length) in ((args.env_id, resets["native"]),
+                                                                       (args.tier_id, resets["tier"])))
                          + ")")
     kns = 1e9 / row["kernel"]
     kls = 1e9 / row["kernel_libm"]
@@ -685,10 +680,9 @@ def main(argv: list[str] | None = None) -> str:
         rows[n] = bench_size(args, n, rng)
         print(f"N={n}: " + ", ".join(f"{c} {fmt(v)}" for c, v in rows[n].items()), flush=True)
     n = max(args.sizes)
-    steady = steady_state(args, n) if args.burn else None
+    steady, resets = steady_state(args, n) if args.burn else (None, None)
     if steady:
-        print(f"steady state N={n}: " + ", ".join(f"{c} {fmt(v)}" for c, v in steady.items() if c in cases_of(steady)),
-              flush=True)
+        print(f"steady state N={n}: " + ", ".join(f"{c} {fmt(v)}" for c, v in steady.items()), flush=True)
     prof = profile(args, n) if n >= dyn.BLOCK else None
     tier_prof = profile(args, n, args.tier_id) if n >= dyn.BLOCK else None
     machine = machine_throughput(args.budget, args.repeats)
@@ -698,7 +692,7 @@ def main(argv: list[str] | None = None) -> str:
     if args.cold_start:
         cold = {"single": cold_start(args.env_id), "vector": cold_start(args.env_id, 64)}
         print(f"cold start: {cold}", flush=True)
-    text = report(args, rows, load, _load(), prof, machine, policy, policy_libm, cold, tier_prof, steady)
+    text = report(args, rows, load, _load(), prof, machine, policy, policy_libm, cold, tier_prof, steady, resets)
     return write_report(args.out, text)
 
 
