@@ -159,7 +159,7 @@ def uniform01(rs, i):
     return float(next_u64(rs, i) >> _S11) * (1.0 / 9007199254740992.0)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def normal01(rs, proc, i):
     """A standard normal deviate (Box-Muller; the pair's second value is cached in proc)."""
     if proc[i, R_GAUSS_HAS] != 0.0:
@@ -462,7 +462,7 @@ def _sincos_rows(wk, src, sin_row, cos_row, m, fast):
     _sincos_rows_r(wk, np.int64(src), np.int64(sin_row), np.int64(cos_row), np.int64(m), fast)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _sincos_rows_r(wk, src, sin_row, cos_row, m, fast):
     """sin/cos of lanes 0..m-1 of row ``src`` into rows ``sin_row`` and ``cos_row`` (all three
     distinct): libm (scalar calls), or fast_sincos in a SIMD loop with libm for the lanes whose
@@ -507,14 +507,14 @@ def _tone_values(wk, m, fast):
         _sincos_rows(wk, K_OUT, K_S + j, K_C + j, m, fast)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _heading_values(wk, m, fast):
     """cos/sin of both headings (state rows K_ST + 2, K_ST + 8) into rows K_C0, K_S0, K_CT, K_STT."""
     _sincos_rows(wk, K_ST + 2, K_S0, K_C0, m, fast)
     _sincos_rows(wk, K_ST + 8, K_STT, K_CT, m, fast)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _trig_values(wk, m, fast):
     """:func:`_tone_values` and :func:`_heading_values`: the sin/cos at a step's start, for a block.
     Not inlined (called once per block): one compiled copy for the step's refresh, the reset's
@@ -536,7 +536,7 @@ def _gather_lane(state, p, i, wk, b):
         wk[_ix(K_PH + j, b)] = p[i, _TONE_PHASE[j]]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def gather_block(state, p, a, m, wk):
     """Copy envs a..a+m-1 of state (N, 9) and params (N, NP) into the block's rows."""
     for b in range(m):
@@ -598,7 +598,7 @@ def _rk4_block_lane(wk, h, b, exact):
                     _load7(wk, K_F0, b), _load7(wk, K_FM, b), _load7(wk, K_F1, b), exact)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _rotation_factors(wk, hh, m):
     """cos/sin of each tone's half-substep angle omega * hh into rows K_RC.., K_RS..: small-angle
     polynomials, libm for the lanes beyond SMALL_ANGLE. A tone's row is recomputed only if some
@@ -630,7 +630,7 @@ def _rotation_factors(wk, hh, m):
                         wk[_ix(K_RS + j, b)] = rsn
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _redo_lane(wk, h, b):
     """Lane b's RK4 step again with libm cos/sin for its heading increments (the rare lanes
     with an increment beyond SMALL_ANGLE); a function of its own, compiled once, so that the
@@ -643,7 +643,7 @@ def _redo_lane(wk, h, b):
 _ONE_LANE = False
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def advance_block(wk, dt, nsub, m, fast):
     """Advance the m lanes of a block by dt from their times (row K_T0) in nsub RK4
     substeps, the forces (rows K_F..) held constant; the state rows change in place.
@@ -742,7 +742,7 @@ def _gm_z(x, a, std, z):
     return a * x + math.sqrt(1.0 - a * a) * std * z
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _gm(x, a, std, rs, proc, i):
     """One exact step of a stationary Gauss-Markov (OU) process with per-step decay a."""
     return _gm_z(x, a, std, normal01(rs, proc, i))
@@ -951,7 +951,7 @@ def update_processes_all(proc, rs, p, steps, fast):
             update_processes_block(proc, rs, p, m, wk, fast)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _current_vector(proc, p, i):
     sp = max(0.0, p[i, P_CS_MEAN] + proc[i, R_CSX])
     proc[i, R_CGX] = sp * math.cos(proc[i, R_CDIR])
@@ -959,31 +959,32 @@ def _current_vector(proc, p, i):
 
 
 @njit(cache=True, inline="always")
-def _heading_trig(proc, key, col, x):
-    """(cos x, sin x), from env i's cache row ``proc`` if it holds them for x, else libm (cached)."""
-    if proc[key] != x or math.copysign(1.0, proc[key]) != math.copysign(1.0, x):  # (-0.0: sin differs)
-        proc[key] = x
-        proc[col] = math.cos(x)
-        proc[col + 1] = math.sin(x)
-    return proc[col], proc[col + 1]
+def _heading_trig(proc, i, key, col, x):
+    """(cos x, sin x), from env i's cache (columns ``key``, ``col``, ``col + 1`` of ``proc``) if it
+    holds them for x, else libm (cached). (Indexed by (i, column): a row view ``proc[i]`` here
+    took a reference count, two atomic operations, per env and step: 30 ns of an env-step.)"""
+    if proc[i, key] != x or math.copysign(1.0, proc[i, key]) != math.copysign(1.0, x):  # (-0.0: sin differs)
+        proc[i, key] = x
+        proc[i, col] = math.cos(x)
+        proc[i, col + 1] = math.sin(x)
+    return proc[i, col], proc[i, col + 1]
 
 
 @njit(cache=True, inline="always")
 def refresh_trig(state, k, proc, p, cfg, i):
     """Make env i's cached libm values those of its present state and time (computed only
     where the keys differ): the ten tones at t = k dt and cos/sin of both headings."""
-    pr = proc[i]
-    if pr[R_TK] != k[i]:
+    if proc[i, R_TK] != k[i]:
         t = k[i] * cfg[C_DT]
         for j in range(10):
             oc = _TONE_OMEGA[j]
             w = p[i, oc] if oc >= 0 else (_W1 if oc == -1 else _W2)
             a = w * t + p[i, _TONE_PHASE[j]]
-            pr[R_TS + j] = math.sin(a)
-            pr[R_TC + j] = math.cos(a)
-        pr[R_TK] = k[i]
-    _heading_trig(pr, R_PSK, R_PSC, state[i, 2])
-    _heading_trig(pr, R_PTK, R_PTC, state[i, 8])
+            proc[i, R_TS + j] = math.sin(a)
+            proc[i, R_TC + j] = math.cos(a)
+        proc[i, R_TK] = k[i]
+    _heading_trig(proc, i, R_PSK, R_PSC, state[i, 2])
+    _heading_trig(proc, i, R_PTK, R_PTC, state[i, 8])
 
 
 @njit(cache=True, inline="always")
@@ -1010,7 +1011,7 @@ def refresh_trig_block(k, proc, cfg, a, m, wk, fast):
         proc[i, R_PTS] = wk[_ix(K_STT, b)]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _init_processes(proc, rs, p, i, direction):
     """Stationary start of env i's processes; link and thrusters empty."""
     for c in range(NR):
@@ -1039,7 +1040,7 @@ def _ring(s, q):
     return s - q if s >= q else s
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _send(state, proc, queue, rs, p, cfg, i, step):
     """Measure the target at control step ``step`` and put the packet in flight (or lose it)."""
     dt = cfg[C_DT]
@@ -1189,7 +1190,7 @@ def thrusters(proc, p, cfg, i, fu, fv, fr):
     return fu, fv, fr
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _observe(state, k, proc, p, cfg, i, obs, truth):
     """Fill obs[i] (what the follower has) and truth[i] (evaluation only); return error.
 
@@ -1291,7 +1292,7 @@ def _called(disp):
     thrusters, sin/cos caches and observation compile once as functions instead of as an
     inlined copy in each kernel (cold start, issue 23). Same code, same results."""
     opts = {k: v for k, v in disp.targetoptions.items() if k not in ("nopython", "inline")}
-    return njit(cache=True, **opts)(disp.py_func)
+    return njit(cache=True, _nrt=False, **opts)(disp.py_func)
 
 
 def recompiled(f, name: str, subs: dict | None = None, **opts):
@@ -1327,11 +1328,18 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
     sin/cos and the processes' draws as the step does (``cfg[C_FAST]``: SIMD or libm), a block of
     envs at once.
     """
+    reset_range(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs, truth, work_buffer(True))
+
+
+@njit(cache=True, _nrt=False)
+def reset_range(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs, truth, wk):
+    """:func:`reset_kernel` in the zeroed work buffer ``wk`` (:func:`work_buffer`): allocates nothing,
+    so it is compiled without reference counting (as :func:`step_range`). The warm-up's forces
+    stay 0 (the follower is placed afterwards)."""
     W = int(cfg[C_WARM])
     dt = cfg[C_DT]
     nsub = int(cfg[C_NSUB])
     fast = cfg[C_FAST] != 0.0
-    wk = work_buffer(True)  # forces stay 0 in the warm-up (the follower is placed below)
     for n0 in range(0, idx.shape[0], BLOCK):  # the warm-up of up to BLOCK envs at once
         m = min(BLOCK, idx.shape[0] - n0)
         for b in range(m):
@@ -1378,7 +1386,7 @@ def reset_kernel_parallel(state, k, proc, queue, rs, p, cfg, idx, seeds, directi
                          truth)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _place_follower(state, k, proc, p, cfg, i, obs, truth):
     """After the warm-up: the follower at rest behind the held packet's reference point."""
     if proc[i, R_HAS] != 0.0:
@@ -1406,7 +1414,7 @@ def error_samples(err_hist, err_stage, i, n):
     return np.concatenate((err_hist[i, :n8], err_stage[i, :n - n8]))
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def first_bad_action(action):
     """-1, or the env index of the first non-finite entry of the flat (3N,) action."""
     for j in range(action.shape[0]):
@@ -1415,9 +1423,11 @@ def first_bad_action(action):
     return -1
 
 
-@njit(cache=True, error_model="numpy")
-def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action, lo, hi):
-    """One control step for envs lo..hi-1 (actions assumed finite; see :func:`step_kernel`).
+@njit(cache=True, error_model="numpy", _nrt=False)
+def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action, lo, hi, wk):
+    """One control step for envs lo..hi-1 (actions assumed finite; see :func:`step_kernel`), in
+    the work buffer ``wk`` (:func:`work_buffer`; the caller's, so that this function allocates
+    nothing and is compiled without reference counting: see :data:`NO_NRT`).
 
     Block by block: actions and thrusters per env, the RK4 step for the block's envs at
     once (:func:`advance_block`), the block's random processes (:func:`update_processes_block`),
@@ -1431,7 +1441,6 @@ def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stag
     nsteps = int(cfg[C_NSTEPS])
     effort = cfg[C_EFFORT]
     fast = cfg[C_FAST] != 0.0
-    wk = work_buffer(False)
     for a in range(lo, hi, BLOCK):
         m = min(BLOCK, hi - a)
         gather_block(state, p, a, m, wk)
@@ -1510,7 +1519,8 @@ def step_kernel(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_sta
     bad = first_bad_action(action)
     if bad >= 0:
         return bad
-    step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action, 0, state.shape[0])
+    step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action, 0, state.shape[0],
+               work_buffer(False))
     return -1
 
 
@@ -1532,5 +1542,6 @@ def step_kernel_parallel(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist
         lo = min(n, (c * nblk // chunks) * BLOCK)
         hi = min(n, ((c + 1) * nblk // chunks) * BLOCK)
         if hi > lo:
-            step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action, lo, hi)
+            step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action, lo, hi,
+                       work_buffer(False))
     return -1

@@ -121,7 +121,7 @@ def _views(buf):
 #: dynamics.advance_block with its one-lane path (``_ONE_LANE``): the lane's RK4 step compiled once,
 #: with libm beyond SMALL_ANGLE, instead of the block path's SIMD copy plus the redo (cold start)
 _advance_block_one = dyn.recompiled(dyn.advance_block.py_func, "advance_block_one", {"_ONE_LANE": True},
-                                    cache=False, error_model="numpy")
+                                    cache=False, error_model="numpy", _nrt=False)
 
 
 @njit(inline="always")
@@ -157,8 +157,8 @@ _step_range_one = _rebound(dyn.step_range, advance_block=_advance_one, gather_bl
                            update_processes_block=dyn._update_processes_block_r, thrusters=dyn._thrusters_r,
                            refresh_trig=dyn._refresh_trig_r, refresh_trig_block=dyn._refresh_trig_block_r,
                            _load_random_forcing=dyn._load_random_forcing_r)
-#: dynamics.reset_kernel, the same code, with the one-lane RK4 block (of one env only)
-_reset_kernel_one = _rebound(dyn.reset_kernel, advance_block=_advance_one)
+#: dynamics.reset_range, the same code, with the one-lane RK4 block (of one env only)
+_reset_range_one = _rebound(dyn.reset_range, advance_block=_advance_one)
 
 
 def _build():
@@ -182,7 +182,7 @@ def _build():
         if bad >= 0:
             return bad, 0.0, False, 0, 0.0
         _step_range_one(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action,
-                        0, 1)
+                        0, 1, dyn.work_buffer(False))
         return -1, rew[0], term[0], k[0], truth[0, dyn.T_ERR]
 
     def reset_one(buf, seed, direction):
@@ -195,7 +195,7 @@ def _build():
         idx = np.zeros(1, dtype=np.int64)
         seeds = np.full(1, seed, dtype=np.int64)
         directions = np.full(1, direction)
-        _reset_kernel_one(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs, truth)
+        _reset_range_one(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs, truth, dyn.work_buffer(True))
 
     return njit(cache=True)(step_one), njit(cache=True)(reset_one)
 
