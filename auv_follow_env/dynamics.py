@@ -433,6 +433,13 @@ def work_buffer(zeroed):
     return wk
 
 
+@njit(cache=True)
+def new_work_buffer(zeroed):
+    """:func:`work_buffer` for callers outside numba (tests, benchmarks), which pass it to a
+    kernel compiled without reference counting (``_nrt=False``: such a kernel cannot allocate)."""
+    return work_buffer(zeroed)
+
+
 _ZERO7 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
@@ -941,8 +948,13 @@ def update_processes_block(proc, rs, p, m, wk, fast):
 def update_processes_all(proc, rs, p, steps, fast):
     """:func:`update_processes_block` over every env, block by block as the step runs it, for
     ``steps`` control steps (for the tests and the speed benchmark)."""
+    _update_processes_steps(proc, rs, p, steps, fast, work_buffer(True))
+
+
+@njit(cache=True, error_model="numpy", _nrt=False)
+def _update_processes_steps(proc, rs, p, steps, fast, wk):
+    """:func:`update_processes_all` in the work buffer ``wk`` (without reference counting, as the step)."""
     n = proc.shape[0]
-    wk = work_buffer(True)
     for _ in range(steps):
         for a in range(0, n, BLOCK):
             m = min(BLOCK, n - a)

@@ -255,7 +255,7 @@ def steady_state(args: Args, n: int) -> tuple[dict[str, float], dict[str, tuple[
 
 
 # --- profile of the batched step ------------------------------------------------------------
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _refresh_all(state, k, proc, p, cfg, reps):
     """refresh_trig for every env with its keys invalidated: the libm values of a new step."""
     for _ in range(reps):
@@ -266,11 +266,10 @@ def _refresh_all(state, k, proc, p, cfg, reps):
             dyn.refresh_trig(state, k, proc, p, cfg, i)
 
 
-@njit(cache=True)
-def _refresh_block_all(state, k, proc, p, cfg, reps, fast):
+@njit(cache=True, _nrt=False)
+def _refresh_block_all(state, k, proc, p, cfg, reps, fast, wk):
     """refresh_trig_block over the batch (as step_range runs it; ``fast``: the default's SIMD sin/cos)."""
     n = state.shape[0]
-    wk = dyn.work_buffer(True)
     for _ in range(reps):
         for a in range(0, n, dyn.BLOCK):
             m = min(dyn.BLOCK, n - a)
@@ -278,12 +277,11 @@ def _refresh_block_all(state, k, proc, p, cfg, reps, fast):
             dyn.refresh_trig_block(k, proc, cfg, a, m, wk, fast)
 
 
-@njit(cache=True)
-def _observe_all(state, k, proc, p, cfg, obs, truth, reps):
+@njit(cache=True, _nrt=False)
+def _observe_all(state, k, proc, p, cfg, obs, truth, reps, wk):
     """The observation, truth and error of every env (libm values cached), block by block as the
     step computes them (the relative heading's sin/cos for a block at once): idempotent."""
     n = state.shape[0]
-    wk = dyn.work_buffer(True)
     fast = cfg[dyn.C_FAST] != 0.0
     B = dyn.BLOCK
     for _ in range(reps):
@@ -297,7 +295,7 @@ def _observe_all(state, k, proc, p, cfg, obs, truth, reps):
                                 wk[dyn.K_DPS * B + b])
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _link_all(state, k, proc, queue, rs, p, cfg, reps):
     """The link of every env at reps successive control steps (sends when due, arrivals)."""
     for r in range(reps):
@@ -305,11 +303,10 @@ def _link_all(state, k, proc, queue, rs, p, cfg, reps):
             dyn.link_tick(state, proc, queue, rs, p, cfg, i, k[i] + r)
 
 
-@njit(cache=True)
-def _advance_cached(state, k, proc, p, cfg, forces, reps):
+@njit(cache=True, _nrt=False)
+def _advance_cached(state, k, proc, p, cfg, forces, reps, wk):
     """The block RK4 of the step from the cached start values (as step_range runs it)."""
     n = state.shape[0]
-    wk = dyn.work_buffer(True)
     for _ in range(reps):
         for a in range(0, n, dyn.BLOCK):
             m = min(dyn.BLOCK, n - a)
@@ -361,21 +358,22 @@ def profile(args: Args, n: int, env_id: str | None = None) -> dict[str, float]:
     state = sim.state.copy()
     out: dict[str, float] = {}
     rp, b = args.repeats, args.budget
+    wk = dyn.new_work_buffer(True)  # (the helpers below, like the step, allocate nothing)
     out["env_step"] = _ns_per_env(lambda r: [venv.step(acts[j % 8]) for j in range(r)], n, 1, b, rp)
     out["step_kernel"] = _ns_per_env(lambda r: [kern(*kargs, flat[j % 8]) for j in range(r)], n, 1, b, rp)
     out["integrate"] = _ns_per_env(lambda r: [dyn.integrate(state, sim.params, sim.cfg, t0, forces)
                                               for _ in range(r)], n, 1, b, rp)
     out["advance"] = _ns_per_env(lambda r: _advance_cached(sim.state, sim.k, sim.proc, sim.params, sim.cfg,
-                                                           forces, r), n, 1, b, rp)
+                                                           forces, r, wk), n, 1, b, rp)
     out["libm"] = _ns_per_env(lambda r: _refresh_all(sim.state, sim.k, sim.proc, sim.params, sim.cfg, r),
                               n, 1, b, rp)
     out["libm_block"] = _ns_per_env(lambda r: _refresh_block_all(sim.state, sim.k, sim.proc, sim.params, sim.cfg,
-                                                                 r, False), n, 1, b, rp)
+                                                                 r, False, wk), n, 1, b, rp)
     out["fast_block"] = _ns_per_env(lambda r: _refresh_block_all(sim.state, sim.k, sim.proc, sim.params, sim.cfg,
-                                                                 r, True), n, 1, b, rp)
+                                                                 r, True, wk), n, 1, b, rp)
     obs, truth = sim.obs.copy(), sim.truth.copy()
     out["observe"] = _ns_per_env(lambda r: _observe_all(sim.state, sim.k, sim.proc, sim.params, sim.cfg, obs,
-                                                        truth, r), n, 1, b, rp)
+                                                        truth, r, wk), n, 1, b, rp)
     proc, queue, rs = sim.proc.copy(), sim.queue.copy(), sim.rs.copy()
     out["link"] = _ns_per_env(lambda r: _link_all(sim.state, sim.k, proc, queue, rs, sim.params, sim.cfg, r),
                               n, 1, b, rp)
