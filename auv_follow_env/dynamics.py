@@ -138,6 +138,13 @@ INF = math.inf
 
 # --- per-env random numbers: SplitMix64 (Steele, Lea & Flood 2014) ---------------------------
 _SM_GAMMA = np.uint64(0x9E3779B97F4A7C15)
+
+#: numba options of a kernel function that only compiled code calls and that allocates nothing:
+#: no reference counting (numba took a reference, two atomic operations, on every array argument
+#: of every call and inlined helper: more than the arithmetic of some helpers; DEVELOPERS.md) and
+#: no Python or C entry point (less to compile: cold start). Such a function cannot allocate
+#: (numba refuses to compile it) and cannot be called from Python.
+INTERNAL = {"_nrt": False, "no_cpython_wrapper": True, "no_cfunc_wrapper": True}
 _SM_M1 = np.uint64(0xBF58476D1CE4E5B9)
 _SM_M2 = np.uint64(0x94D049BB133111EB)
 _S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11)
@@ -159,7 +166,7 @@ def uniform01(rs, i):
     return float(next_u64(rs, i) >> _S11) * (1.0 / 9007199254740992.0)
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **INTERNAL)
 def normal01(rs, proc, i):
     """A standard normal deviate (Box-Muller; the pair's second value is cached in proc)."""
     if proc[i, R_GAUSS_HAS] != 0.0:
@@ -469,7 +476,7 @@ def _sincos_rows(wk, src, sin_row, cos_row, m, fast):
     _sincos_rows_r(wk, np.int64(src), np.int64(sin_row), np.int64(cos_row), np.int64(m), fast)
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
+@njit(cache=True, error_model="numpy", **INTERNAL)
 def _sincos_rows_r(wk, src, sin_row, cos_row, m, fast):
     """sin/cos of lanes 0..m-1 of row ``src`` into rows ``sin_row`` and ``cos_row`` (all three
     distinct): libm (scalar calls), or fast_sincos in a SIMD loop with libm for the lanes whose
@@ -514,14 +521,14 @@ def _tone_values(wk, m, fast):
         _sincos_rows(wk, K_OUT, K_S + j, K_C + j, m, fast)
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
+@njit(cache=True, error_model="numpy", **INTERNAL)
 def _heading_values(wk, m, fast):
     """cos/sin of both headings (state rows K_ST + 2, K_ST + 8) into rows K_C0, K_S0, K_CT, K_STT."""
     _sincos_rows(wk, K_ST + 2, K_S0, K_C0, m, fast)
     _sincos_rows(wk, K_ST + 8, K_STT, K_CT, m, fast)
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
+@njit(cache=True, error_model="numpy", **INTERNAL)
 def _trig_values(wk, m, fast):
     """:func:`_tone_values` and :func:`_heading_values`: the sin/cos at a step's start, for a block.
     Not inlined (called once per block): one compiled copy for the step's refresh, the reset's
@@ -543,7 +550,7 @@ def _gather_lane(state, p, i, wk, b):
         wk[_ix(K_PH + j, b)] = p[i, _TONE_PHASE[j]]
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
+@njit(cache=True, error_model="numpy", **INTERNAL)
 def gather_block(state, p, a, m, wk):
     """Copy envs a..a+m-1 of state (N, 9) and params (N, NP) into the block's rows."""
     for b in range(m):
@@ -605,7 +612,7 @@ def _rk4_block_lane(wk, h, b, exact):
                     _load7(wk, K_F0, b), _load7(wk, K_FM, b), _load7(wk, K_F1, b), exact)
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
+@njit(cache=True, error_model="numpy", **INTERNAL)
 def _rotation_factors(wk, hh, m):
     """cos/sin of each tone's half-substep angle omega * hh into rows K_RC.., K_RS..: small-angle
     polynomials, libm for the lanes beyond SMALL_ANGLE. A tone's row is recomputed only if some
@@ -637,7 +644,7 @@ def _rotation_factors(wk, hh, m):
                         wk[_ix(K_RS + j, b)] = rsn
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
+@njit(cache=True, error_model="numpy", **INTERNAL)
 def _redo_lane(wk, h, b):
     """Lane b's RK4 step again with libm cos/sin for its heading increments (the rare lanes
     with an increment beyond SMALL_ANGLE); a function of its own, compiled once, so that the
@@ -650,7 +657,7 @@ def _redo_lane(wk, h, b):
 _ONE_LANE = False
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
+@njit(cache=True, error_model="numpy", **INTERNAL)
 def advance_block(wk, dt, nsub, m, fast):
     """Advance the m lanes of a block by dt from their times (row K_T0) in nsub RK4
     substeps, the forces (rows K_F..) held constant; the state rows change in place.
@@ -749,7 +756,7 @@ def _gm_z(x, a, std, z):
     return a * x + math.sqrt(1.0 - a * a) * std * z
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **INTERNAL)
 def _gm(x, a, std, rs, proc, i):
     """One exact step of a stationary Gauss-Markov (OU) process with per-step decay a."""
     return _gm_z(x, a, std, normal01(rs, proc, i))
@@ -951,7 +958,7 @@ def update_processes_all(proc, rs, p, steps, fast):
     _update_processes_steps(proc, rs, p, steps, fast, work_buffer(True))
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
+@njit(cache=True, error_model="numpy", **INTERNAL)
 def _update_processes_steps(proc, rs, p, steps, fast, wk):
     """:func:`update_processes_all` in the work buffer ``wk`` (without reference counting, as the step)."""
     n = proc.shape[0]
@@ -963,7 +970,7 @@ def _update_processes_steps(proc, rs, p, steps, fast, wk):
             update_processes_block(proc, rs, p, m, wk, fast)
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **INTERNAL)
 def _current_vector(proc, p, i):
     sp = max(0.0, p[i, P_CS_MEAN] + proc[i, R_CSX])
     proc[i, R_CGX] = sp * math.cos(proc[i, R_CDIR])
@@ -1023,7 +1030,7 @@ def refresh_trig_block(k, proc, cfg, a, m, wk, fast):
         proc[i, R_PTS] = wk[_ix(K_STT, b)]
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **INTERNAL)
 def _init_processes(proc, rs, p, i, direction):
     """Stationary start of env i's processes; link and thrusters empty."""
     for c in range(NR):
@@ -1052,7 +1059,7 @@ def _ring(s, q):
     return s - q if s >= q else s
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **INTERNAL)
 def _send(state, proc, queue, rs, p, cfg, i, step):
     """Measure the target at control step ``step`` and put the packet in flight (or lose it)."""
     dt = cfg[C_DT]
@@ -1202,7 +1209,7 @@ def thrusters(proc, p, cfg, i, fu, fv, fr):
     return fu, fv, fr
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
+@njit(cache=True, error_model="numpy", **INTERNAL)
 def _observe(state, k, proc, p, cfg, i, obs, truth):
     """Fill obs[i] (what the follower has) and truth[i] (evaluation only); return error.
 
@@ -1304,7 +1311,7 @@ def _called(disp):
     thrusters, sin/cos caches and observation compile once as functions instead of as an
     inlined copy in each kernel (cold start, issue 23). Same code, same results."""
     opts = {k: v for k, v in disp.targetoptions.items() if k not in ("nopython", "inline")}
-    return njit(cache=True, _nrt=False, **opts)(disp.py_func)
+    return njit(cache=True, **{**opts, **INTERNAL})(disp.py_func)
 
 
 def recompiled(f, name: str, subs: dict | None = None, **opts):
@@ -1343,7 +1350,7 @@ def reset_kernel(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs,
     reset_range(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs, truth, work_buffer(True))
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **INTERNAL)
 def reset_range(state, k, proc, queue, rs, p, cfg, idx, seeds, directions, obs, truth, wk):
     """:func:`reset_kernel` in the zeroed work buffer ``wk`` (:func:`work_buffer`): allocates nothing,
     so it is compiled without reference counting (as :func:`step_range`). The warm-up's forces
@@ -1398,7 +1405,7 @@ def reset_kernel_parallel(state, k, proc, queue, rs, p, cfg, idx, seeds, directi
                          truth)
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **INTERNAL)
 def _place_follower(state, k, proc, p, cfg, i, obs, truth):
     """After the warm-up: the follower at rest behind the held packet's reference point."""
     if proc[i, R_HAS] != 0.0:
@@ -1426,7 +1433,7 @@ def error_samples(err_hist, err_stage, i, n):
     return np.concatenate((err_hist[i, :n8], err_stage[i, :n - n8]))
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **INTERNAL)
 def first_bad_action(action):
     """-1, or the env index of the first non-finite entry of the flat (3N,) action."""
     for j in range(action.shape[0]):
@@ -1435,7 +1442,7 @@ def first_bad_action(action):
     return -1
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
+@njit(cache=True, error_model="numpy", **INTERNAL)
 def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action, lo, hi, wk):
     """One control step for envs lo..hi-1 (actions assumed finite; see :func:`step_kernel`), in
     the work buffer ``wk`` (:func:`work_buffer`; the caller's, so that this function allocates

@@ -121,7 +121,7 @@ def _views(buf):
 #: dynamics.advance_block with its one-lane path (``_ONE_LANE``): the lane's RK4 step compiled once,
 #: with libm beyond SMALL_ANGLE, instead of the block path's SIMD copy plus the redo (cold start)
 _advance_block_one = dyn.recompiled(dyn.advance_block.py_func, "advance_block_one", {"_ONE_LANE": True},
-                                    cache=False, error_model="numpy", _nrt=False)
+                                    cache=False, error_model="numpy", **dyn.INTERNAL)
 
 
 @njit(inline="always")
