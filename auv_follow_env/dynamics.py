@@ -136,15 +136,16 @@ NT = 13
 _W1, _W2 = DIST_OMEGA
 INF = math.inf
 
-# --- per-env random numbers: SplitMix64 (Steele, Lea & Flood 2014) ---------------------------
-_SM_GAMMA = np.uint64(0x9E3779B97F4A7C15)
-
 #: numba options of a kernel function that only compiled code calls and that allocates nothing:
 #: no reference counting (numba took a reference, two atomic operations, on every array argument
 #: of every call and inlined helper: more than the arithmetic of some helpers; DEVELOPERS.md) and
 #: no Python or C entry point (less to compile: cold start). Such a function cannot allocate
 #: (numba refuses to compile it) and cannot be called from Python.
 INTERNAL = {"_nrt": False, "no_cpython_wrapper": True, "no_cfunc_wrapper": True}
+
+
+# --- per-env random numbers: SplitMix64 (Steele, Lea & Flood 2014) ---------------------------
+_SM_GAMMA = np.uint64(0x9E3779B97F4A7C15)
 _SM_M1 = np.uint64(0xBF58476D1CE4E5B9)
 _SM_M2 = np.uint64(0x94D049BB133111EB)
 _S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11)
@@ -980,8 +981,7 @@ def _current_vector(proc, p, i):
 @njit(cache=True, inline="always")
 def _heading_trig(proc, i, key, col, x):
     """(cos x, sin x), from env i's cache (columns ``key``, ``col``, ``col + 1`` of ``proc``) if it
-    holds them for x, else libm (cached). (Indexed by (i, column): a row view ``proc[i]`` here
-    took a reference count, two atomic operations, per env and step: 30 ns of an env-step.)"""
+    holds them for x, else libm (cached)."""
     if proc[i, key] != x or math.copysign(1.0, proc[i, key]) != math.copysign(1.0, x):  # (-0.0: sin differs)
         proc[i, key] = x
         proc[i, col] = math.cos(x)
@@ -1309,7 +1309,8 @@ def _called(disp):
     inlining (no ``inline="always"``): for the reset, which runs once per episode, and the single
     env's step (kernel_one, one env per call: nothing to vectorise), so that the link, processes,
     thrusters, sin/cos caches and observation compile once as functions instead of as an
-    inlined copy in each kernel (cold start, issue 23). Same code, same results."""
+    inlined copy in each kernel (cold start, issue 23); with the options :data:`INTERNAL`. Same code, same
+    results."""
     opts = {k: v for k, v in disp.targetoptions.items() if k not in ("nopython", "inline")}
     return njit(cache=True, **{**opts, **INTERNAL})(disp.py_func)
 
@@ -1446,7 +1447,7 @@ def first_bad_action(action):
 def step_range(state, k, proc, queue, rs, p, cfg, obs, truth, err_hist, err_stage, rew, term, action, lo, hi, wk):
     """One control step for envs lo..hi-1 (actions assumed finite; see :func:`step_kernel`), in
     the work buffer ``wk`` (:func:`work_buffer`; the caller's, so that this function allocates
-    nothing and is compiled without reference counting: see :data:`NO_NRT`).
+    nothing and is compiled without reference counting: see :data:`INTERNAL`).
 
     Block by block: actions and thrusters per env, the RK4 step for the block's envs at
     once (:func:`advance_block`), the block's random processes (:func:`update_processes_block`),

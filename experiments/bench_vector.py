@@ -600,7 +600,8 @@ def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after:
         tp = tier_prof or {}
         lines += ["", f"## Profile of one batched step (N = {n}, one thread, ns per env-step)", "",
                   "Each part timed alone in a loop over the batch (the link at successive steps, so it sends "
-                  "when due); \"rest\" is the kernel's time minus the parts.", "",
+                  "when due); \"rest\" is the kernel's time minus the parts (it can come out below zero: "
+                  "the parts, each timed alone, can add up to more than the whole step).", "",
                   f"| part | {args.env_id} ns | share | {args.tier_id} ns | share |", "|---|---|---|---|---|"]
         parts = (("RK4 of follower and target (structure-of-arrays blocks, start values cached)", "advance"),
                  ("sin/cos of the new step (ten tones, both headings: `refresh_trig_block`, SIMD)", "fast_block"),
