@@ -287,9 +287,12 @@ class AUVFollowVectorEnv(VectorEnv):
                 or not a.flags.c_contiguous:
             a = check_action(a, (n, 3))
         ended = self._autoreset_idx
-        if ended.size:  # their actions are ignored (they reset), even if not finite
-            a = a.copy()
-            a[ended] = 0.0
+        if a.dtype != np.float64 or ended.size:
+            # the kernels take float64 only (float32 -> float64 is exact: the same forces), so numba
+            # compiles one specialisation of them, not one more per action dtype (seconds each);
+            # astype copies, so the ended envs' actions are zeroed in our copy, not the caller's
+            a = a.astype(np.float64)
+            a[ended] = 0.0  # their actions are ignored (they reset), even if not finite
         flat = a.reshape(-1)
         sim = self._sim
         if self._parallel is not None:

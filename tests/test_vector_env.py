@@ -247,6 +247,36 @@ def test_accepts_other_dtypes_layouts_and_lists():
         assert data_equivalence(venv.step(variant), expected, exact=True)
 
 
+def test_kernels_get_float64_actions_whatever_the_callers_dtype():
+    """One compiled specialisation of the step kernels serves float32 and float64 actions (each
+    more dtype compiled the whole step again, seconds at the first step), and the caller's
+    array is never written, also when the actions of envs being autoreset are zeroed."""
+    n = 2
+    venv = AUVFollowVectorEnv(num_envs=n, parallel=False, **SHORT)
+    venv.reset(seed=0)
+    seen = []
+    kernel = venv._kernel
+
+    def spy(*args):
+        seen.append(args[-1].dtype)
+        return kernel(*args)
+
+    venv._kernel = spy
+    a32 = _actions(1, n)[0]
+    a64 = a32.astype(np.float64)
+    kept32, kept64 = a32.copy(), a64.copy()
+    venv.step(a32)
+    venv.step(a64)
+    for _ in range(38):  # to the end of the 40-step episodes
+        *_, trunc, _ = venv.step(a64)
+    assert trunc.all()
+    venv.step(a64)  # both envs autoreset: their actions are zeroed in a copy
+    venv.step(a32)
+    assert seen == [np.dtype(np.float64)] * 42
+    np.testing.assert_array_equal(a32, kept32)
+    np.testing.assert_array_equal(a64, kept64)
+
+
 def test_spaces_spec_metadata_and_returned_data_not_reused():
     venv = _vec(4, {"disturbance": "L1", **SHORT}, env_id="AUVFollow-v0")
     single = gym.make("AUVFollow-v0", disturbance="L1", **SHORT)
