@@ -352,7 +352,7 @@ def profile(args: Args, n: int, env_id: str | None = None) -> dict[str, float]:
         venv.step(acts[j % 8])
     sim = venv.unwrapped._sim
     kern, kargs = sim.step_call()
-    flat = [a.reshape(-1) for a in acts]
+    flat = [a.reshape(-1).astype(np.float64) for a in acts]  # (as the env hands them to its kernel)
     forces = acts[0].astype(np.float64) * np.asarray(sim.config.force_limits)
     t0 = np.zeros(n)
     state = sim.state.copy()
