@@ -432,12 +432,16 @@ K_DK = 136  # the ten tones' half-substep angles omega * h / 2 whose cos/sin row
 NK = 146
 
 
+#: the slots [lo, hi) of a work buffer that hold the rotation-factor keys (rows K_DK..): NaN in a new one
+WK_KEYS = (K_DK * BLOCK, (K_DK + 10) * BLOCK)
+
+
 @njit(cache=True, inline="always")
 def work_buffer(zeroed):
     """A block's work buffer (NK rows of BLOCK doubles): uninitialised (every row a lane reads is
     written first) or zeroed, with the rotation-factor keys (rows K_DK..) NaN."""
     wk = np.zeros(NK * BLOCK) if zeroed else np.empty(NK * BLOCK)
-    wk[K_DK * BLOCK:(K_DK + 10) * BLOCK] = np.nan
+    wk[WK_KEYS[0]:WK_KEYS[1]] = np.nan
     return wk
 
 

@@ -74,7 +74,7 @@ def packed_arrays(q: int, d: int, h: int) -> tuple[np.ndarray, dict[str, np.ndar
     o_e = O_Q + q * _NQ
     o_e += (-(buf.ctypes.data + 8 * o_e) % 64) // 8
     buf[O_HDR:O_HDR + 4] = q, d, h, o_e
-    buf[O_WK + dyn.K_DK * dyn.BLOCK:O_WK + (dyn.K_DK + 10) * dyn.BLOCK] = np.nan  # (as dynamics.work_buffer)
+    buf[O_WK + dyn.WK_KEYS[0]:O_WK + dyn.WK_KEYS[1]] = np.nan  # (as dynamics.work_buffer)
     arrays = {
         "state": buf[O_ST:O_ST + 9].reshape(1, 9),
         "k": buf[O_K:O_K + 1].view(np.int64),
