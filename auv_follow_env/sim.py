@@ -301,6 +301,9 @@ def sample_params_v1_many(config: EnvConfig, rngs: list[np.random.Generator]
     return rows, seeds, directions, condition
 
 
+#: the arrays of :meth:`BatchSim.step_call`'s leading args, in the step kernel's order
+STEP_ARRAYS = ("state", "k", "proc", "queue", "rs", "params", "cfg", "obs", "truth", "err_hist", "err_stage",
+               "rew", "term")
 #: the arrays a reset writes (dynamics.reset_kernel): what a reset made ahead copies in
 _RESET_ARRAYS = ("state", "k", "proc", "queue", "rs", "params", "obs", "truth")
 
@@ -599,9 +602,7 @@ class BatchSim:
 
     def step_call(self) -> tuple:
         """(kernel, leading args) so a hot loop can call ``kernel(*args, action_flat)``."""
-        return (dyn.step_kernel, (self.state, self.k, self.proc, self.queue, self.rs, self.params, self.cfg,
-                                  self.obs, self.truth, self.err_hist, self.err_stage, self.rew,
-                                  self.term))
+        return dyn.step_kernel, tuple(getattr(self, name) for name in STEP_ARRAYS)
 
     def step_one_call(self) -> tuple:
         """(kernel, buffer) of a packed sim: ``kernel(buffer, action)`` is one step, returning

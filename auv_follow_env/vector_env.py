@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -22,11 +23,14 @@ from auv_follow_env import dynamics as dyn
 from auv_follow_env.env import check_action
 from auv_follow_env.metrics import METRIC_KEYS, history_metrics
 from auv_follow_env.params import TaskSpec
-from auv_follow_env.sim import BatchSim, check_sincos
+from auv_follow_env.sim import STEP_ARRAYS, BatchSim, check_sincos
 from auv_follow_env.tiers import make_env_config
 
 __all__ = ["AUVFollowVectorEnv"]
 
+#: where the step kernel's args hold the observation and (next) the truth array
+_OBS_ARG = STEP_ARRAYS.index("obs")
+assert STEP_ARRAYS[_OBS_ARG + 1] == "truth"
 _FAST_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 #: fewest envs for the automatic parallel path (parallel=None): below it one step of the batch
 #: costs less than waking numba's threads
@@ -256,6 +260,7 @@ class AUVFollowVectorEnv(VectorEnv):
         for i in idx:
             if seeds[i] is not None or self._rngs[i] is None:
                 self._rngs[i] = seeding.np_random(seeds[i])[0]
+        self._new_outputs(np.copy)  # (the other envs keep their rows)
         self._sim.reset(idx, [self._rngs[i] for i in idx])
         self._autoreset[idx] = False
         self._autoreset_idx = np.flatnonzero(self._autoreset)
@@ -263,7 +268,7 @@ class AUVFollowVectorEnv(VectorEnv):
         info = self._info(mask if not mask.all() else None)
         if self._sim.v1:
             info["condition"], info["_condition"] = self._conditions(mask)
-        return self._sim.obs.copy(), info
+        return self._sim.obs, info
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Advance every env one control step (envs whose episode ended last step reset).
@@ -295,13 +300,18 @@ class AUVFollowVectorEnv(VectorEnv):
             a[ended] = 0.0  # their actions are ignored (they reset), even if not finite
         flat = a.reshape(-1)
         sim = self._sim
+        # the step writes every env's observation and truth rows into new arrays (no copies of
+        # the old ones to hand out; the arrays returned before are never written again)
+        obs, truth = np.empty_like(sim.obs), np.empty_like(sim.truth)
+        args = self._args[:_OBS_ARG] + (obs, truth) + self._args[_OBS_ARG + 2:]
         if self._parallel is not None:
-            bad = self._parallel[0](*self._args, flat, self._parallel[1])
+            bad = self._parallel[0](*args, flat, self._parallel[1])
         else:
-            bad = self._kernel(*self._args, flat)
+            bad = self._kernel(*args, flat)
         if bad >= 0:
             raise ValueError(f"actions[{bad}]={np.asarray(a[bad]).tolist()} contains NaN or inf: "
                              f"no env was changed")
+        sim.obs, sim.truth, self._args = obs, truth, args
         terminated = sim.term.copy()
         truncated = sim.k >= self._n_steps
         truncated &= ~terminated
@@ -330,16 +340,24 @@ class AUVFollowVectorEnv(VectorEnv):
             started = np.zeros(self.num_envs, dtype=np.bool_)
             started[ended] = True
             info["condition"], info["_condition"] = self._conditions(started)
-        return sim.obs.copy(), rewards, terminated, truncated, info
+        return sim.obs, rewards, terminated, truncated, info
 
     def close_extras(self, **kwargs: Any) -> None:
         """Nothing to release (no renderer, no worker processes)."""
 
     # --- helpers --------------------------------------------------------------------------
-    def _info(self, mask: np.ndarray | None) -> dict[str, Any]:
-        """The per-step info arrays (views into one fresh copy of the truth array)."""
+    def _new_outputs(self, new: Callable[[np.ndarray], np.ndarray]) -> None:
+        """Give the sim the observation and truth arrays ``new(old)`` (``np.copy``: a reset of some
+        envs keeps the others' rows), so those handed out before are never written again."""
         sim = self._sim
-        truth = sim.truth.copy()
+        sim.obs, sim.truth = new(sim.obs), new(sim.truth)
+        self._kernel, self._args = sim.step_call()
+
+    def _info(self, mask: np.ndarray | None) -> dict[str, Any]:
+        """The per-step info arrays (views into the truth array of this step or reset, which the
+        sim does not write again)."""
+        sim = self._sim
+        truth = sim.truth
         info: dict[str, Any] = {
             "tracking_error": truth[:, 12], "time": sim.k * self._dt, "true_target": truth[:, 3:9],
             "true_reference": truth[:, 9:12], "follower_pose": truth[:, 0:3]}

@@ -539,6 +539,11 @@ def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after:
                                      for eid, (ends, warm, length) in ((args.env_id, resets["native"]),
                                                                        (args.tier_id, resets["tier"])))
                          + ")")
+            # the same rates counting each reset's warm-up steps as simulated steps: what is left of
+            # the ratio is the step itself, not the episode's definition (the tier's longer warm-up)
+            sim_rate = {name: steady[name] * (1.0 + resets[name][0] * resets[name][1]) for name in ("native", "tier")}
+            lines.append(f"  (per simulated step, warm-up steps counted: {args.env_id} {fmt(sim_rate['native'])}, "
+                         f"{args.tier_id} {fmt(sim_rate['tier'])}, ratio {sim_rate['tier'] / sim_rate['native']:.2f})")
     kns = 1e9 / row["kernel"]
     kls = 1e9 / row["kernel_libm"]
 

@@ -297,6 +297,19 @@ def test_spaces_spec_metadata_and_returned_data_not_reused():
     np.testing.assert_array_equal(info["tracking_error"], snapshot[1])
     assert not np.shares_memory(out[0], out2[0]) and not np.shares_memory(out[1], out2[1])
     assert out[1].dtype == np.float64 and out[2].dtype == np.bool_ and out[3].dtype == np.bool_
+    # nor by a reset of some envs, nor a refused step: what a step or reset handed out stays as it was
+    kept = {"obs": out2[0], **{key: out2[4][key] for key in ("tracking_error", "true_target", "follower_pose")}}
+    before = {key: v.copy() for key, v in kept.items()}
+    obs_r, info_r = venv.reset(seed=5, options={"reset_mask": np.array([True, False, True, False])})
+    np.testing.assert_array_equal(obs_r[[1, 3]], before["obs"][[1, 3]])  # the others keep their rows
+    assert not np.array_equal(obs_r[[0, 2]], before["obs"][[0, 2]])
+    kept.update({"reset obs": obs_r, "reset error": info_r["tracking_error"]})
+    before.update({"reset obs": obs_r.copy(), "reset error": info_r["tracking_error"].copy()})
+    with pytest.raises(ValueError, match="NaN"):
+        venv.step(np.full((4, 3), np.nan))
+    venv.step(venv.action_space.sample())
+    for key, v in kept.items():
+        np.testing.assert_array_equal(v, before[key], err_msg=key)
 
 
 def test_registered_for_every_id_and_arguments_validated():
