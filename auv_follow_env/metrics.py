@@ -11,7 +11,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["METRIC_KEYS", "tracking_metrics", "window_metrics", "batch_tracking_metrics", "history_metrics"]
+__all__ = ["METRIC_KEYS", "tracking_metrics", "window_metrics", "batch_tracking_metrics", "history_metrics",
+           "history_metrics_into", "steady_index"]
 
 #: keys of :func:`tracking_metrics`, in table order
 METRIC_KEYS: tuple[str, ...] = (
@@ -175,7 +176,20 @@ def history_metrics(err_hist: np.ndarray, ids: np.ndarray, lengths: np.ndarray, 
         raise ValueError(f"ids and lengths must be 1-D of equal length, got shapes {ids.shape} and {lengths.shape}")
     if ids.size and (ids.min() < 0 or ids.max() >= e.shape[0] or lengths.min() < 0 or lengths.max() > e.shape[1]):
         raise ValueError(f"ids must be in [0, {e.shape[0]}) and lengths in [0, {e.shape[1]}]")
-    steady0 = int(np.searchsorted(t >= steady_start - 1e-9, True)) if t.size else 0
     out = np.full((len(METRIC_KEYS), e.shape[0]), np.nan)
-    _history_metrics(e, ids, lengths, steady0, out)
+    _history_metrics(e, ids, lengths, steady_index(t, steady_start), out)
     return out
+
+
+def steady_index(times: np.ndarray, steady_start: float) -> int:
+    """The first sample of the steady-state window: the first of the increasing ``times`` [s] at
+    or after ``steady_start`` (``len(times)`` if none)."""
+    return int(np.searchsorted(np.asarray(times) >= steady_start - 1e-9, True)) if len(times) else 0
+
+
+def history_metrics_into(err_hist: np.ndarray, ids: np.ndarray, lengths: np.ndarray, steady0: int,
+                         out: np.ndarray) -> None:
+    """:func:`history_metrics` without its checks, for callers whose arguments are right by
+    construction (the vector env's step): writes column ``ids[q]`` of ``out`` (6, E) and nothing
+    else; ``steady0`` from :func:`steady_index`; ``ids`` and ``lengths`` int64 arrays."""
+    _history_metrics(err_hist, ids, lengths, steady0, out)

@@ -301,6 +301,9 @@ def sample_params_v1_many(config: EnvConfig, rngs: list[np.random.Generator]
     return rows, seeds, directions, condition
 
 
+#: the link's packet counters (:meth:`BatchSim.link_stats`) and their columns in ``proc``
+LINK_COUNTERS = {"sent": dyn.R_SENT, "lost": dyn.R_LOST, "arrived": dyn.R_ARRIVED, "discarded": dyn.R_DISCARDED,
+                 "overflow": dyn.R_OVERFLOW}
 #: the arrays of :meth:`BatchSim.step_call`'s leading args, in the step kernel's order
 STEP_ARRAYS = ("state", "k", "proc", "queue", "rs", "params", "cfg", "obs", "truth", "err_hist", "err_stage",
                "rew", "term")
@@ -615,8 +618,7 @@ class BatchSim:
         """Env i's packet counts since t = 0: sent, lost, arrived (accepted), discarded
         (arrived after a newer one), overflow (dropped from a full queue)."""
         p = self.proc[i]
-        return {"sent": int(p[dyn.R_SENT]), "lost": int(p[dyn.R_LOST]), "arrived": int(p[dyn.R_ARRIVED]),
-                "discarded": int(p[dyn.R_DISCARDED]), "overflow": int(p[dyn.R_OVERFLOW])}
+        return {key: int(p[col]) for key, col in LINK_COUNTERS.items()}
 
     def errors(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """(errors, times) recorded so far in env i's episode (post-step samples)."""

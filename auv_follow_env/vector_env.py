@@ -21,9 +21,9 @@ from gymnasium.vector.utils import batch_space
 
 from auv_follow_env import dynamics as dyn
 from auv_follow_env.env import check_action
-from auv_follow_env.metrics import METRIC_KEYS, history_metrics
+from auv_follow_env.metrics import METRIC_KEYS, history_metrics_into, steady_index
 from auv_follow_env.params import TaskSpec
-from auv_follow_env.sim import STEP_ARRAYS, BatchSim, check_sincos
+from auv_follow_env.sim import LINK_COUNTERS, STEP_ARRAYS, BatchSim, check_sincos
 from auv_follow_env.tiers import make_env_config
 
 __all__ = ["AUVFollowVectorEnv"]
@@ -31,6 +31,7 @@ __all__ = ["AUVFollowVectorEnv"]
 #: where the step kernel's args hold the observation and (next) the truth array
 _OBS_ARG = STEP_ARRAYS.index("obs")
 assert STEP_ARRAYS[_OBS_ARG + 1] == "truth"
+_LINK_COLS = np.array(list(LINK_COUNTERS.values()), dtype=np.int64)
 _FAST_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 #: fewest envs for the automatic parallel path (parallel=None): below it one step of the batch
 #: costs less than waking numba's threads
@@ -221,6 +222,7 @@ class AUVFollowVectorEnv(VectorEnv):
         #: whether steps run on numba's threads (the resolved ``parallel`` argument)
         self.parallel = self._parallel is not None
         self._n_steps = n_steps
+        self._steady0 = steady_index(self._sim.sample_times, self.config.steady_start_s)
         self._dt = self.config.dt
         self._rngs: list[np.random.Generator | None] = [None] * self.num_envs
         self._autoreset = np.zeros(self.num_envs, dtype=np.bool_)  # ended last step
@@ -372,20 +374,20 @@ class AUVFollowVectorEnv(VectorEnv):
 
     def _link_stats(self, done: np.ndarray) -> dict[str, np.ndarray]:
         """v1: packet counts of the episodes that ended (-1 elsewhere)."""
-        sim = self._sim
-        out = {key: np.full(self.num_envs, -1, dtype=np.int64)
-               for key in ("sent", "lost", "arrived", "discarded", "overflow")}
-        for i in np.flatnonzero(done):
-            for key, value in sim.link_stats(i).items():
-                out[key][i] = value
+        ids = np.flatnonzero(done)
+        counts = self._sim.proc[ids][:, _LINK_COLS].astype(np.int64)  # (as int(): toward zero)
+        out = {}
+        for j, key in enumerate(LINK_COUNTERS):
+            out[key] = np.full(self.num_envs, -1, dtype=np.int64)
+            out[key][ids] = counts[:, j]
         return out
 
     def _episode_metrics(self, done: np.ndarray) -> dict[str, np.ndarray]:
         """The paper's metrics of the episodes that ended (NaN elsewhere), with masks."""
         sim = self._sim
         ids = np.flatnonzero(done)
-        rows = history_metrics(sim.err_hist, ids, np.minimum(sim.k[ids], self.config.n_steps), sim.sample_times,
-                               self.config.steady_start_s)
+        rows = np.full((len(METRIC_KEYS), self.num_envs), np.nan)
+        history_metrics_into(sim.err_hist, ids, np.minimum(sim.k[ids], self.config.n_steps), self._steady0, rows)
         out: dict[str, np.ndarray] = dict(zip(METRIC_KEYS, rows, strict=True))
         for key in METRIC_KEYS:
             out["_" + key] = done.copy()
