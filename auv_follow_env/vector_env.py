@@ -28,9 +28,8 @@ from auv_follow_env.tiers import make_env_config
 
 __all__ = ["AUVFollowVectorEnv"]
 
-#: where the step kernel's args hold the observation and (next) the truth array
-_OBS_ARG = STEP_ARRAYS.index("obs")
-assert STEP_ARRAYS[_OBS_ARG + 1] == "truth"
+#: where the step kernel's args hold the truth array
+_TRUTH_ARG = STEP_ARRAYS.index("truth")
 _LINK_COLS = np.array(list(LINK_COUNTERS.values()), dtype=np.int64)
 _FAST_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 #: fewest envs for the automatic parallel path (parallel=None): below it one step of the batch
@@ -262,7 +261,7 @@ class AUVFollowVectorEnv(VectorEnv):
         for i in idx:
             if seeds[i] is not None or self._rngs[i] is None:
                 self._rngs[i] = seeding.np_random(seeds[i])[0]
-        self._new_outputs(np.copy)  # (the other envs keep their rows)
+        self._new_truth(np.copy)  # (the other envs keep their rows)
         self._sim.reset(idx, [self._rngs[i] for i in idx])
         self._autoreset[idx] = False
         self._autoreset_idx = np.flatnonzero(self._autoreset)
@@ -270,7 +269,7 @@ class AUVFollowVectorEnv(VectorEnv):
         info = self._info(mask if not mask.all() else None)
         if self._sim.v1:
             info["condition"], info["_condition"] = self._conditions(mask)
-        return self._sim.obs, info
+        return self._sim.obs.copy(), info
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Advance every env one control step (envs whose episode ended last step reset).
@@ -302,10 +301,10 @@ class AUVFollowVectorEnv(VectorEnv):
             a[ended] = 0.0  # their actions are ignored (they reset), even if not finite
         flat = a.reshape(-1)
         sim = self._sim
-        # the step writes every env's observation and truth rows into new arrays (no copies of
-        # the old ones to hand out; the arrays returned before are never written again)
-        obs, truth = np.empty_like(sim.obs), np.empty_like(sim.truth)
-        args = self._args[:_OBS_ARG] + (obs, truth) + self._args[_OBS_ARG + 2:]
+        # the step writes every env's truth row (the info's arrays) into a new array: no copy of
+        # the old one to hand out, and the info returned before is never written again
+        truth = np.empty_like(sim.truth)
+        args = self._args[:_TRUTH_ARG] + (truth,) + self._args[_TRUTH_ARG + 1:]
         if self._parallel is not None:
             bad = self._parallel[0](*args, flat, self._parallel[1])
         else:
@@ -313,7 +312,7 @@ class AUVFollowVectorEnv(VectorEnv):
         if bad >= 0:
             raise ValueError(f"actions[{bad}]={np.asarray(a[bad]).tolist()} contains NaN or inf: "
                              f"no env was changed")
-        sim.obs, sim.truth, self._args = obs, truth, args
+        sim.truth, self._args = truth, args
         terminated = sim.term.copy()
         truncated = sim.k >= self._n_steps
         truncated &= ~terminated
@@ -342,17 +341,19 @@ class AUVFollowVectorEnv(VectorEnv):
             started = np.zeros(self.num_envs, dtype=np.bool_)
             started[ended] = True
             info["condition"], info["_condition"] = self._conditions(started)
-        return sim.obs, rewards, terminated, truncated, info
+        return sim.obs.copy(), rewards, terminated, truncated, info
 
     def close_extras(self, **kwargs: Any) -> None:
         """Nothing to release (no renderer, no worker processes)."""
 
     # --- helpers --------------------------------------------------------------------------
-    def _new_outputs(self, new: Callable[[np.ndarray], np.ndarray]) -> None:
-        """Give the sim the observation and truth arrays ``new(old)`` (``np.copy``: a reset of some
-        envs keeps the others' rows), so those handed out before are never written again."""
+    def _new_truth(self, new: Callable[[np.ndarray], np.ndarray]) -> None:
+        """Give the sim the truth array ``new(old)`` (``np.copy``: a reset of some envs keeps the
+        others' rows), so the info handed out before is never written again. (The observations
+        are copied out instead: a reset of some envs returns the others' last observations, which
+        must not be what a caller made of the array it was given.)"""
         sim = self._sim
-        sim.obs, sim.truth = new(sim.obs), new(sim.truth)
+        sim.truth = new(sim.truth)
         self._kernel, self._args = sim.step_call()
 
     def _info(self, mask: np.ndarray | None) -> dict[str, Any]:

@@ -300,8 +300,11 @@ def test_spaces_spec_metadata_and_returned_data_not_reused():
     # nor by a reset of some envs, nor a refused step: what a step or reset handed out stays as it was
     kept = {"obs": out2[0], **{key: out2[4][key] for key in ("tracking_error", "true_target", "follower_pose")}}
     before = {key: v.copy() for key, v in kept.items()}
+    out2[0][:] = -7.0  # what a caller does with its arrays does not reach the env
+    kept["obs"] = out2[0].copy()
     obs_r, info_r = venv.reset(seed=5, options={"reset_mask": np.array([True, False, True, False])})
-    np.testing.assert_array_equal(obs_r[[1, 3]], before["obs"][[1, 3]])  # the others keep their rows
+    np.testing.assert_array_equal(obs_r[[1, 3]], before["obs"][[1, 3]])  # the others keep their last observation
+    before["obs"] = kept["obs"]
     assert not np.array_equal(obs_r[[0, 2]], before["obs"][[0, 2]])
     kept.update({"reset obs": obs_r, "reset error": info_r["tracking_error"]})
     before.update({"reset obs": obs_r.copy(), "reset error": info_r["tracking_error"].copy()})
