@@ -544,6 +544,14 @@ def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after:
             sim_rate = {name: steady[name] * (1.0 + resets[name][0] * resets[name][1]) for name in ("native", "tier")}
             lines.append(f"  (per simulated step, warm-up steps counted: {args.env_id} {fmt(sim_rate['native'])}, "
                          f"{args.tier_id} {fmt(sim_rate['tier'])}, ratio {sim_rate['tier'] / sim_rate['native']:.2f})")
+    if prof:  # why the env step cannot come within 1.5x of the bare kernel: its own parts alone
+        parts = {"RK4": prof["advance"], "sin/cos": prof["fast_block"], "observation": prof["observe"],
+                 "link": prof["link"], "processes": prof["processes"]}
+        lines.append(f"  (the step's own parts, each timed alone in the profile below, add up to "
+                     f"{sum(parts.values()):.0f} ns per env-step ("
+                     + ", ".join(f"{name} {v:.0f}" for name, v in parts.items())
+                     + f"), against 1.5x the bare kernel = {1.5e9 / row['kernel']:.0f} ns: the RK4 and sin/cos are "
+                       "the bare kernel's own work, the rest is the task's)")
     kns = 1e9 / row["kernel"]
     kls = 1e9 / row["kernel_libm"]
 
