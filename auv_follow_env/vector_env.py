@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -261,7 +260,7 @@ class AUVFollowVectorEnv(VectorEnv):
         for i in idx:
             if seeds[i] is not None or self._rngs[i] is None:
                 self._rngs[i] = seeding.np_random(seeds[i])[0]
-        self._new_truth(np.copy)  # (the other envs keep their rows)
+        self._copy_truth()  # (the other envs keep their rows)
         self._sim.reset(idx, [self._rngs[i] for i in idx])
         self._autoreset[idx] = False
         self._autoreset_idx = np.flatnonzero(self._autoreset)
@@ -347,13 +346,13 @@ class AUVFollowVectorEnv(VectorEnv):
         """Nothing to release (no renderer, no worker processes)."""
 
     # --- helpers --------------------------------------------------------------------------
-    def _new_truth(self, new: Callable[[np.ndarray], np.ndarray]) -> None:
-        """Give the sim the truth array ``new(old)`` (``np.copy``: a reset of some envs keeps the
-        others' rows), so the info handed out before is never written again. (The observations
-        are copied out instead: a reset of some envs returns the others' last observations, which
-        must not be what a caller made of the array it was given.)"""
+    def _copy_truth(self) -> None:
+        """Give the sim a copy of its truth array (a reset of some envs keeps the others' rows), so
+        the info handed out before is never written again. (The observations are copied out
+        instead: a reset of some envs returns the others' last observations, which must not be
+        what a caller made of the array it was given.)"""
         sim = self._sim
-        sim.truth = new(sim.truth)
+        sim.truth = sim.truth.copy()
         self._kernel, self._args = sim.step_call()
 
     def _info(self, mask: np.ndarray | None) -> dict[str, Any]:
