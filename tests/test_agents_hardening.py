@@ -21,7 +21,7 @@ import yaml
 
 from agents.cli import main
 from agents.obs_stats import FORMAT, ObsStats, read_obs_stats, write_obs_stats
-from agents.train import ConfigError, TrainConfig, _Progress, check_hyperparams, load_agent, train
+from agents.train import ConfigError, TrainConfig, _Progress, check_hyperparams, evaluate_agent, load_agent, train
 
 ROOT = Path(__file__).resolve().parents[1]
 RUNS = ROOT / "results" / "agents" / "runs"
@@ -101,9 +101,17 @@ def test_evaluate_never_unpickles_and_reproduces_the_benchmark(tmp_path, capsys)
     assert main(["evaluate", str(run), "--seeds", "1000", "--out", str(csv), "--no-progress"]) == 0
     assert not marker.exists()  # ... but evaluate never unpickles it
     got = pd.read_csv(csv).iloc[0]
+    # in this process, the command gives exactly what the library's evaluation gives (the CSV holds
+    # floats in repr, which round-trips)
+    direct = evaluate_agent(load_agent(_copy_run(SCRATCH_RUN, tmp_path / "run2")), seeds=[1000], progress=False)
+    assert got["true_steady_mean"] == float(direct["true_steady_mean"].iloc[0])
+    # against the committed benchmark, recorded on another host: a closed loop through a float32
+    # network amplifies last-bit differences between hosts' BLAS and libm kernels. Measured here,
+    # moving every observation by at most one float32 ulp changes this episode's metric by up to
+    # 2.0 % (0.02079 -> 0.02093 .. 0.02120; other hosts gave 0.02086 and 0.02103), so the bound is 5 %.
     bench = pd.read_csv(ROOT / "results" / "agents" / "benchmark_episodes.csv")
     want = bench[(bench.policy == "PPO (scratch)") & (bench.seed == 1000)].iloc[0]
-    assert got["true_steady_mean"] == pytest.approx(want["true_steady_mean"], rel=1e-6)
+    assert got["true_steady_mean"] == pytest.approx(want["true_steady_mean"], rel=0.05)
     assert f"wrote {csv}" in capsys.readouterr().out
 
 
