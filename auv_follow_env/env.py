@@ -199,6 +199,27 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
     ``warmup_s = tau``, no loss, no noise, no processes (``AUVFollow-v1`` with those keywords
     reproduces ``AUVFollow-v0``'s plant trajectory).
 
+    ## Rendering
+
+    ``render_mode`` (a ``gym.make`` keyword): ``None`` (default, nothing drawn), ``"rgb_array"``
+    (``env.render()`` returns the present frame, a ``(600, 600, 3)`` uint8 array, rows top to
+    bottom) or ``"human"`` (a 600 x 600 pygame window updated at every reset and step and paced at
+    ``metadata["render_fps"]``, which is ``round(1 / dt)``: 20 frames per second of simulated time
+    by default, real time). The frame shows 6 m across (100 px per metre, a 1 m scale bar), centred
+    on the midpoint of the follower and the true reference, x to the right and y up
+    (:func:`auv_follow_env.rendering.to_pixel`): the target (red), the true reference (green
+    circle), the follower (blue) with their last 20 s as trails, the time and the tracking error.
+    On v1 it also shows the fixes the follower received in the trails' window at the received
+    (noisy) target positions (orange circles; the newest a purple disc with its age, now minus its
+    measurement time, as text) and a line with that age and the time since it arrived ("no fix
+    received yet" before the first). Rendering only reads the env: episodes are the same with
+    any ``render_mode``. Only pygame's display (``human``) and font modules are initialised, never
+    its audio; ``rgb_array`` needs no display (headless machines), ``human`` on one needs
+    ``SDL_VIDEODRIVER=dummy``. A video of each episode with gymnasium's wrapper (needs moviepy, in
+    the ``dev`` extra)::
+
+        env = gym.wrappers.RecordVideo(gym.make("AUVFollow-Easy-v1", render_mode="rgb_array"), "videos")
+
     ## Version History
 
     * v1: the acoustic link, random target, current and thrusters; four tiers with test seeds.
@@ -235,6 +256,7 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         self._n_steps = self.config.n_steps
         self._started = False
         self._trails: deque | None = None
+        self._fixes: deque | None = None  # v1: (x, y, measured at, arrived at) of the fixes received
         self._renderer = None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -249,6 +271,7 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         self._started = True
         if self.render_mode is not None:
             self._trails = deque(maxlen=int(20.0 / self.config.dt))
+            self._fixes = deque()
             self._record_trail()
         truth = self._sim.truth[0].copy()
         info = {"tracking_error": float(truth[12]), "time": 0.0, "true_target": truth[3:9],
@@ -284,8 +307,18 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
 
     # --- rendering ------------------------------------------------------------------------
     def _record_trail(self) -> None:
+        """Append the present poses to the trails and, on v1, a fix that arrived since the last call
+        (read from the sim's held packet; nothing in the episode changes)."""
         tr = self._sim.truth[0]
         self._trails.append((tr[0], tr[1], tr[2], tr[3], tr[4], tr[5], tr[9], tr[10]))
+        if self._sim.v1:
+            p = self._sim.proc[0]
+            dt = self.config.dt
+            if p[dyn.R_HAS] != 0.0 and (not self._fixes or self._fixes[-1][3] != p[dyn.R_HARR] * dt):
+                self._fixes.append((float(p[dyn.R_HX]), float(p[dyn.R_HX + 1]), float(p[dyn.R_HMEAS]) * dt,
+                                    float(p[dyn.R_HARR]) * dt))
+            while self._fixes and self._fixes[0][3] < (self._sim.k[0] - self._trails.maxlen) * dt:
+                self._fixes.popleft()  # (only the fixes of the trails' window)
 
     def render(self):
         if self.render_mode is None:
@@ -299,7 +332,8 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         if self._renderer is None:
             self._renderer = Renderer(self.render_mode, self.metadata["render_fps"])
         return self._renderer.draw(list(self._trails), self._sim.k[0] * self.config.dt,
-                                   float(self._sim.truth[0, dyn.T_ERR]))
+                                   float(self._sim.truth[0, dyn.T_ERR]),
+                                   list(self._fixes) if self._sim.v1 else None)
 
     def close(self) -> None:
         if self._renderer is not None:
