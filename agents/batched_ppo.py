@@ -107,48 +107,133 @@ class BatchedPPO:
         self.__dict__.update({k: v for k, v in locals().items() if k != "self"})
 
 
+#: bounds of the policy options: wider or deeper networks, or a std outside these, are refused before any work
+MAX_HIDDEN = 8192  #: units of one hidden layer (and of the GRU)
+MAX_LAYERS = 16  #: hidden layers of the actor or the critic
+LOG_STD_MIN = -5.0  #: training clamps the policy's log std here (a lower initial value would never move)
+LOG_STD_INIT_RANGE = (LOG_STD_MIN, 2.0)  #: allowed log_std_init (std e^-5 = 0.007 to e^2 = 7.4 in action units)
+MAX_ROLLOUT_SAMPLES = 2 ** 22  #: n_steps x n_envs: samples held in memory per update (default 32 x 512 = 16,384)
+
+
+def whole_number(name: str, v: Any, lo: int, hi: float = math.inf) -> int:
+    """The one rule for integer settings: an integer, or a float (or a numeric string, as YAML
+    1.1 reads ``1e6``) that is a whole number, such as ``1.0e+6``, within [lo, hi]; never a bool.
+    Raises ValueError naming ``name``, the value and the range."""
+    x = v
+    if isinstance(x, str):
+        try:
+            x = float(x)
+        except ValueError:
+            pass
+    ok = isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
+    if ok and isinstance(x, (float, np.floating)):
+        ok = math.isfinite(x) and float(x).is_integer()
+    if ok:
+        x = int(x)
+        ok = lo <= x <= hi
+    if not ok:
+        rng = f">= {lo}" if hi == math.inf else f"in [{lo}, {hi:g}]"
+        raise ValueError(f"{name}={v!r} is invalid: must be a whole number {rng}")
+    return x
+
+
+def _real(name: str, v: Any, lo: float, hi: float) -> float:
+    """A finite number in [lo, hi] (not a bool); raises ValueError naming ``name`` and the value."""
+    x = v
+    if isinstance(x, str):
+        try:
+            x = float(x)
+        except ValueError:
+            pass
+    ok = isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
+    if ok:
+        try:
+            x = float(x)
+        except OverflowError:
+            ok = False
+    if not (ok and math.isfinite(x) and lo <= x <= hi):
+        raise ValueError(f"{name}={v!r} is invalid: must be a finite number in [{lo:g}, {hi:g}]")
+    return x
+
+
+def _sizes(name: str, v: Any) -> list[int]:
+    if not isinstance(v, (list, tuple)) or len(v) > MAX_LAYERS:
+        raise ValueError(f"{name}={v!r} is invalid: must be a list of at most {MAX_LAYERS} hidden sizes (whole "
+                         f"numbers in [1, {MAX_HIDDEN}])")
+    try:
+        return [whole_number(name, h, 1, MAX_HIDDEN) for h in v]
+    except ValueError:
+        raise ValueError(f"{name}={v!r} is invalid: must be a list of at most {MAX_LAYERS} hidden sizes (whole "
+                         f"numbers in [1, {MAX_HIDDEN}])") from None
+
+
 def _policy_kwargs(pk: dict | None) -> dict[str, Any]:
+    """The policy options merged over :data:`POLICY_DEFAULTS`, checked and normalised:
+    ``net_arch`` is a list of hidden sizes (actor and critic alike) or SB3's
+    ``dict(pi=[...], vf=[...])`` (the actor's and the critic's, both keys required)."""
+    if pk is not None and not isinstance(pk, dict):
+        raise ValueError(f"policy_kwargs={pk!r} is invalid: must be a dict")
     out = dict(POLICY_DEFAULTS)
     out.update(pk or {})
-    bad = sorted(set(out) - set(POLICY_DEFAULTS))
+    bad = sorted(map(str, set(out) - set(POLICY_DEFAULTS)))
     if bad:
         raise ValueError(f"policy_kwargs has unknown key(s) {bad}: valid keys are {list(POLICY_DEFAULTS)}")
     arch = out["net_arch"]
-    if isinstance(arch, dict):  # SB3 style dict(pi=[...], vf=[...]): use pi for both
-        arch = arch.get("pi", POLICY_DEFAULTS["net_arch"])
-    if not (isinstance(arch, (list, tuple)) and all(isinstance(h, int) and h > 0 for h in arch)):
-        raise ValueError(f"policy_kwargs net_arch={out['net_arch']!r} is invalid: must be a list of positive integers")
-    out["net_arch"] = list(arch)
+    if isinstance(arch, dict):  # SB3 style: separate actor (pi) and critic (vf) sizes
+        keys = set(map(str, arch))
+        if keys != {"pi", "vf"}:
+            raise ValueError(f"policy_kwargs net_arch={arch!r} is invalid: a dict needs exactly the keys 'pi' (actor) "
+                             f"and 'vf' (critic), got {sorted(keys)}; or give one list for both")
+        out["net_arch"] = {"pi": _sizes("policy_kwargs net_arch['pi']", arch["pi"]),
+                           "vf": _sizes("policy_kwargs net_arch['vf']", arch["vf"])}
+    else:
+        out["net_arch"] = _sizes("policy_kwargs net_arch", arch)
     if out["activation"] not in ("tanh", "relu"):
         raise ValueError(f"policy_kwargs activation={out['activation']!r} is invalid: must be 'tanh' or 'relu'")
     for key in ("recurrent", "privileged_critic", "linear_skip"):
         if not isinstance(out[key], bool):
             raise ValueError(f"policy_kwargs {key}={out[key]!r} is invalid: must be True or False")
-    if not (isinstance(out["gru_size"], int) and out["gru_size"] > 0):
-        raise ValueError(f"policy_kwargs gru_size={out['gru_size']!r} is invalid: must be a positive integer")
+    out["gru_size"] = whole_number("policy_kwargs gru_size", out["gru_size"], 1, MAX_HIDDEN)
+    lo, hi = LOG_STD_INIT_RANGE
+    try:
+        out["log_std_init"] = _real("policy_kwargs log_std_init", out["log_std_init"], lo, hi)
+    except ValueError as exc:
+        raise ValueError(f"{exc} (the policy's initial std is exp(log_std_init) in action units; training clamps "
+                         f"the log std at {LOG_STD_MIN:g})") from None
     return out
 
 
-def check_bppo_hyperparams(hp: dict[str, Any]) -> None:
-    """The checks :func:`agents.train.check_hyperparams` cannot do for bppo (raises ValueError)."""
+def _arch(pk: dict[str, Any], part: str) -> list[int]:
+    """Hidden sizes of the actor (``part="pi"``) or the critic (``"vf"``)."""
+    arch = pk["net_arch"]
+    return list(arch[part]) if isinstance(arch, dict) else list(arch)
+
+
+def check_bppo_hyperparams(hp: dict[str, Any], n_envs: int | None = None) -> None:
+    """The checks :func:`agents.train.check_hyperparams` cannot do for bppo (raises ValueError);
+    with ``n_envs``, also the memory of one rollout (n_steps x n_envs samples)."""
     _policy_kwargs(hp.get("policy_kwargs"))
-    t = hp.get("torch_threads", 1)
-    if isinstance(t, bool) or not isinstance(t, int) or not 1 <= t <= 64:
-        raise ValueError(f"hyperparameter torch_threads={t!r} is invalid: must be an integer in [1, 64]")
-    k = hp.get("n_eval_seeds", 32)
-    if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 10_000:
-        raise ValueError(f"hyperparameter n_eval_seeds={k!r} is invalid: must be an integer in [1, 10000]")
+    whole_number("hyperparameter torch_threads", hp.get("torch_threads", 1), 1, 64)
+    whole_number("hyperparameter n_eval_seeds", hp.get("n_eval_seeds", 32), 1, 10_000)
     sched = hp.get("lr_schedule", "constant")
     if sched not in LR_SCHEDULES:
         raise ValueError(f"hyperparameter lr_schedule={sched!r} is invalid: must be one of {list(LR_SCHEDULES)}")
-    w = hp.get("obs_norm_window", 0)
-    if isinstance(w, bool) or not isinstance(w, int) or w < 0:
-        raise ValueError(f"hyperparameter obs_norm_window={w!r} is invalid: must be a whole number >= 0 "
-                         "(samples; 0 = never forget)")
+    try:
+        whole_number("hyperparameter obs_norm_window", hp.get("obs_norm_window", 0), 0)
+    except ValueError as exc:
+        raise ValueError(f"{exc} (samples; 0 = never forget)") from None
+    if not isinstance(hp.get("random_phase", True), bool):
+        raise ValueError(f"hyperparameter random_phase={hp.get('random_phase')!r} is invalid: must be true or false")
     _check_teacher(hp)
     if hp.get("policy", "MlpPolicy") != "MlpPolicy":
         raise ValueError(f"hyperparameter policy={hp.get('policy')!r} is invalid for bppo: only 'MlpPolicy' "
                          "(use policy_kwargs recurrent=True for a GRU)")
+    if n_envs is not None:
+        t = whole_number("hyperparameter n_steps", hp.get("n_steps", 32), 1)
+        if t * int(n_envs) > MAX_ROLLOUT_SAMPLES:
+            raise ValueError(f"hyperparameter n_steps={hp.get('n_steps')!r} is invalid with n_envs={n_envs}: a rollout "
+                             f"of n_steps x n_envs = {t * int(n_envs):,} samples is held in memory; at most "
+                             f"{MAX_ROLLOUT_SAMPLES:,} allowed")
 
 
 def _check_teacher(hp: dict[str, Any], mode: str | None = None, env_id: str | None = None) -> None:
@@ -156,16 +241,21 @@ def _check_teacher(hp: dict[str, Any], mode: str | None = None, env_id: str | No
     from controllers import ALL_CONTROLLERS
 
     teacher, link, n = hp.get("teacher"), hp.get("teacher_link", "perfect"), hp.get("distill_steps", 0)
-    if teacher is not None and teacher not in ALL_CONTROLLERS:
+    if teacher is not None and (not isinstance(teacher, str) or teacher not in ALL_CONTROLLERS):
         raise ValueError(f"hyperparameter teacher={teacher!r} is invalid: must be None or one of "
                          f"{list(ALL_CONTROLLERS)}")
-    if link not in TEACHER_LINKS:
+    if not isinstance(link, str) or link not in TEACHER_LINKS:
         raise ValueError(f"hyperparameter teacher_link={link!r} is invalid: must be one of {list(TEACHER_LINKS)}")
-    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-        raise ValueError(f"hyperparameter distill_steps={n!r} is invalid: must be a whole number >= 0 (env steps)")
+    n = whole_number("hyperparameter distill_steps", n, 0)
     if n > 0 and teacher is None:
         raise ValueError(f"hyperparameter distill_steps={n} needs a teacher (hyperparameter teacher=<controller>)")
-    if teacher is None or n == 0:
+    if teacher is not None and n == 0:  # the teacher would never be asked: refuse rather than record it
+        raise ValueError(f"hyperparameter teacher={teacher!r} needs distill_steps > 0 (the env steps of imitation "
+                         "before PPO; e.g. distill_steps=4000000); without it nothing is distilled")
+    if teacher is None and link != "perfect":
+        raise ValueError(f"hyperparameter teacher_link={link!r} needs a teacher (hyperparameter "
+                         "teacher=<controller>, with distill_steps > 0)")
+    if teacher is None:
         return
     if _policy_kwargs(hp.get("policy_kwargs"))["recurrent"]:
         raise ValueError("hyperparameter teacher is not supported with policy_kwargs recurrent=True "
@@ -208,8 +298,8 @@ def _build_net(obs_dim: int, pk: dict[str, Any]):
             if self.recurrent:
                 self.gru = nn.GRUCell(obs_dim, pk["gru_size"])
                 trunk = obs_dim + pk["gru_size"]
-            self.actor = mlp(trunk, pk["net_arch"], 3, 0.01)
-            self.critic = mlp(trunk + self.priv, pk["net_arch"], 1, 1.0)
+            self.actor = mlp(trunk, _arch(pk, "pi"), 3, 0.01)
+            self.critic = mlp(trunk + self.priv, _arch(pk, "vf"), 1, 1.0)
             self.skip = nn.Linear(trunk, 3, bias=False) if pk["linear_skip"] else None
             if self.skip is not None:
                 nn.init.zeros_(self.skip.weight)
@@ -391,13 +481,30 @@ def _save_model(path: Path, net: Any, opt: Any, obs_dim: int, pk: dict, steps: i
             "obs_dim": int(obs_dim), "policy_kwargs": dict(pk), "steps_done": int(steps),
             "ret_rms": {"mean": float(ret_rms.mean), "var": float(ret_rms.var), "count": float(ret_rms.count)}}
     tmp = path.with_name(path.name + ".tmp")
-    torch.save(data, str(tmp))
-    tmp.replace(path)
+    try:
+        torch.save(data, str(tmp))
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a failed write (disk full, read-only) leaves no partial file
+        raise
 
 
-def _stats(rms: _RunningMeanStd) -> ObsStats:
+def _stats(rms: _RunningMeanStd, clip_obs: float = CLIP_OBS, epsilon: float = EPS) -> ObsStats:
     return ObsStats(norm_obs=True, mean=rms.mean.copy(), var=rms.var.copy(), count=float(rms.count),
-                    clip_obs=CLIP_OBS, epsilon=EPS)
+                    clip_obs=float(clip_obs), epsilon=float(epsilon))
+
+
+class _Diverged(Exception):
+    """Training produced a non-finite action, loss or parameter (the message says which and when)."""
+
+
+def _check_finite_parameters(net: Any, steps: int) -> None:
+    import torch
+
+    for name, p in net.named_parameters():
+        if not bool(torch.isfinite(p).all()):
+            raise _Diverged(f"the network's parameter {name} is not finite (NaN or inf) after the update at {steps:,} "
+                            "steps")
 
 
 def _iqm(x: np.ndarray) -> float:
@@ -427,6 +534,9 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     norm = plan.norm_kw or {}
     norm_obs, norm_rew = bool(norm.get("norm_obs", True)) if plan.norm_kw else False, \
         bool(norm.get("norm_reward", True)) if plan.norm_kw else False
+    # VecNormalize's settings, honoured as SB3 does (the defaults are SB3's: 10, 10, 1e-8, the algorithm's gamma)
+    clip_obs, clip_rew = float(norm.get("clip_obs", CLIP_OBS)), float(norm.get("clip_reward", CLIP_REWARD))
+    eps, rgamma = float(norm.get("epsilon", EPS)), float(norm.get("gamma", gamma))
     env = BatchedTrainEnv(cfg.env_id, n_envs, seed=cfg.seed, env_kwargs=cfg.env_kwargs,
                           builder=resolved["observation"], random_phase=bool(hp["random_phase"]), parallel=False)
     D = env.obs_dim
@@ -437,7 +547,8 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     start_steps = 0
     if cfg.resume_from is not None:
         data = _load_model_file(Path(cfg.resume_from))
-        if int(data["obs_dim"]) != D or _policy_kwargs(data["policy_kwargs"]) != pk:
+        if int(data["obs_dim"]) != D or _policy_kwargs(data["policy_kwargs"]) != pk:  # checked before, by train
+            env.close()
             raise ValueError(f"resume_from={cfg.resume_from!r} has another observation width or policy_kwargs")
         net.load_state_dict(data["state_dict"])
         opt.load_state_dict(data["optimizer"])
@@ -449,7 +560,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
         from agents.train import _stats_path
 
         sp = _stats_path(Path(cfg.resume_from), ".json")
-        if sp.is_file():
+        if norm_obs:  # train checked that the statistics exist and fit before it created the run
             st = read_obs_stats(sp)
             obs_rms.mean, obs_rms.var, obs_rms.count = st.mean.copy(), st.var.copy(), st.count
     total = plan.total
@@ -482,10 +593,10 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
             return x.astype(np.float32)
         if update:
             obs_rms.update(x)
-        return np.clip((x - obs_rms.mean) / np.sqrt(obs_rms.var + EPS), -CLIP_OBS, CLIP_OBS).astype(np.float32)
+        return np.clip((x - obs_rms.mean) / np.sqrt(obs_rms.var + eps), -clip_obs, clip_obs).astype(np.float32)
 
     def evaluate_now(steps: int, seconds: float) -> dict[str, float]:
-        agent = BatchedAgent(net, _stats(obs_rms) if norm_obs else None, resolved, env.spec)
+        agent = BatchedAgent(net, _stats(obs_rms, clip_obs, eps) if norm_obs else None, resolved, env.spec)
         net.eval()
         df = evaluate_batched([agent], cfg.env_id, eval_seeds, env_kwargs=cfg.env_kwargs, progress=False)
         net.train()
@@ -504,7 +615,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     def save(path: Path, stats_path: Path, steps: int) -> None:
         _save_model(path, net, opt, D, pk, steps, ret_rms)
         if norm_obs:
-            write_obs_stats(_stats(obs_rms), stats_path)
+            write_obs_stats(_stats(obs_rms, clip_obs, eps), stats_path)
 
     def status(steps: int, seconds: float) -> None:
         resolved["steps_done"] = int(steps)
@@ -525,7 +636,8 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     next_eval = (steps // eval_freq + 1) * eval_freq if eval_freq else math.inf
     max_s = 60.0 * cfg.max_minutes if cfg.max_minutes is not None else math.inf
     interrupted, last_eval = False, None
-    log_std_min = -5.0
+    log_std_min = LOG_STD_MIN
+    diverged: str | None = None
     ep_returns: list[float] = []
     ep_errors: list[float] = []
     if eval_freq and start_steps == 0:
@@ -563,6 +675,8 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                     a = mean + std * torch.randn_like(mean)
                     logp = (-0.5 * ((a - mean) / std) ** 2 - torch.log(std) - 0.5 * math.log(2 * math.pi)).sum(-1)
                     buf_act[t], buf_logp[t], buf_val[t] = a.numpy(), logp.numpy(), value.numpy()
+                    if not np.isfinite(buf_act[t]).all():
+                        raise _Diverged(f"the policy's actions are not finite (NaN or inf) at {steps:,} steps")
                     act = a.numpy().astype(np.float64)
                     if distilling:  # DAgger: label with the teacher, act with a mix that ends at the student
                         act, buf_teach[t] = _teacher_step(teacher, env, first, mean.numpy(), steps, distill_steps,
@@ -571,10 +685,10 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                     valid = ~info["prev_done"]
                     done = term | trunc
                     if norm_rew:
-                        ret_acc = ret_acc * gamma + rew
+                        ret_acc = ret_acc * rgamma + rew
                         ret_rms.update(ret_acc[valid] if valid.any() else ret_acc)
                         ret_acc[done] = 0.0
-                        r = np.clip(rew / np.sqrt(ret_rms.var + EPS), -CLIP_REWARD, CLIP_REWARD)
+                        r = np.clip(rew / np.sqrt(ret_rms.var + eps), -clip_rew, clip_rew)
                     else:
                         r = rew
                     buf_rew[t], buf_term[t], buf_done[t], buf_valid[t] = r, term, done, valid
@@ -608,6 +722,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
             else:
                 stats = _update(net, opt, hp, buf_obs, buf_priv, buf_first, buf_act, buf_logp, adv, ret, buf_valid,
                                 h0, log_std_min)
+            _check_finite_parameters(net, steps)
             elapsed = time.perf_counter() - t0
             progress.update(steps)
             row = {"steps": steps, "train_seconds": round(elapsed, 2),
@@ -634,16 +749,23 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                 status(steps, elapsed)
     except KeyboardInterrupt:
         interrupted = True
+    except _Diverged as exc:
+        diverged = str(exc)
     finally:
         progress.close()
         elapsed = time.perf_counter() - t0
-        save(run / "model.zip", run / "vecnormalize.json", steps)
         env.close()
         if writer is not None:
             writer.close()
+    # saved after a finished run or Ctrl-C; a diverged network is not saved (the checkpoints before it are kept)
+    if diverged is None:
+        save(run / "model.zip", run / "vecnormalize.json", steps)
     status(steps, elapsed)
     result = {"num_timesteps": steps, "start_timesteps": start_steps, "wall_clock_s": round(elapsed, 2),
               "steps_per_s": round((steps - start_steps) / max(elapsed, 1e-9), 1), "interrupted": interrupted}
+    if diverged is not None:
+        result["failed"] = f"training diverged: {diverged}"
+        return result, interrupted
     if cfg.final_eval and not interrupted:
         row = evaluate_now(steps, elapsed) if (last_eval is None or last_eval["steps"] != steps) else last_eval
         result["final_score"] = {"seeds": [eval_seeds[0], eval_seeds[-1]],
@@ -731,6 +853,9 @@ def _distill_update(net: Any, opt: Any, hp: dict, obs, priv, teach, ret, valid) 
             bc = ((mean - y_t[t_i, n_i]) ** 2).sum(-1).mean()
             vl = 0.5 * ((value - ret_t[t_i, n_i]) ** 2).mean()
             loss = bc + vf_coef * vl
+            if not bool(torch.isfinite(loss)):
+                raise _Diverged(f"the imitation loss is not finite ({loss.item()!r}: policy {bc.item()!r}, value "
+                                f"{vl.item()!r})")
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(net.parameters(), max_norm)
@@ -796,6 +921,9 @@ def _update(net: Any, opt: Any, hp: dict, obs, priv, first, act, logp_old, adv, 
             vl = 0.5 * ((value - rt) ** 2).mean()
             ent = (log_std + 0.5 * math.log(2 * math.pi * math.e)).sum()
             loss = pg + vf_coef * vl - ent_coef * ent
+            if not bool(torch.isfinite(loss)):
+                raise _Diverged(f"the PPO loss is not finite ({loss.item()!r}: policy {pg.item()!r}, value "
+                                f"{vl.item()!r}, entropy {ent.item()!r})")
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(net.parameters(), max_norm)

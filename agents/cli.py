@@ -258,12 +258,13 @@ def _load(path: str, flag: str):
 
 
 def _train(args: argparse.Namespace) -> None:
-    from agents.train import train
+    from agents.train import TrainingFailed, train
 
     kw = vars(args).copy()
     kw.pop("command")
     kw["env_kwargs"] = dict(kw["env_kwargs"])
     kw["hyperparams"] = dict(kw["hyperparams"])
+    _check_writable(Path(kw["out_dir"]), "--out", want_dir=True)  # before any work, as for the other commands
     tier = auv_follow_env.TIERS.get(kw["env_id"].split("-")[1]) if kw["env_id"].count("-") == 2 else None
     if tier is not None and tier.out_of_distribution:
         print(f"auv-follow train: warning: {kw['env_id']} is for out-of-distribution testing only; train on "
@@ -272,6 +273,9 @@ def _train(args: argparse.Namespace) -> None:
         run = train(TrainConfig(**kw))
     except ConfigError as exc:
         raise _Refused(FLAGS.get(exc.field, exc.field), str(exc)) from None
+    except TrainingFailed as exc:  # diverged or a write failed: one line, exit code 1
+        print(f"auv-follow train: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        raise SystemExit(1) from None
     print(f"run directory: {run}")
 
 

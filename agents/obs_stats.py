@@ -75,8 +75,12 @@ def write_obs_stats(stats: ObsStats | Any, path: str | Path) -> Path:
     data = {"format": FORMAT, "norm_obs": stats.norm_obs, "clip_obs": stats.clip_obs, "epsilon": stats.epsilon,
             "count": stats.count, "mean": stats.mean.tolist(), "var": stats.var.tolist()}
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1) + "\n")
-    tmp.replace(path)  # never leave a half-written file behind
+    try:
+        tmp.write_text(json.dumps(data, indent=1) + "\n")
+        tmp.replace(path)  # never leave a half-written file behind
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # nor its temporary file (disk full, read-only)
+        raise
     return path
 
 

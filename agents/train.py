@@ -33,6 +33,7 @@ import datetime as _dt
 import inspect
 import json
 import math
+import os
 import platform
 import re
 import shutil
@@ -59,7 +60,7 @@ from agents.residual import (
 
 __all__ = ["ALGOS", "MODES", "TrainConfig", "train", "load_hyperparams", "check_hyperparams", "load_agent",
            "Agent", "versions", "evaluate_agent", "HYPERPARAMS_DIR", "ConfigError", "TrainingInterrupted",
-           "MAX_N_ENVS"]
+           "TrainingFailed", "MAX_N_ENVS"]
 
 ALGOS: tuple[str, ...] = ("ppo", "sac", "td3", "recurrentppo", "bppo")
 #: algorithms trained by our own batched loop (agents.batched_ppo) rather than SB3
@@ -93,6 +94,20 @@ class TrainingInterrupted(KeyboardInterrupt):
         super().__init__(f"training interrupted at {num_timesteps} steps; saved in {run}")
         self.run = run
         self.num_timesteps = num_timesteps
+
+
+class TrainingFailed(RuntimeError):
+    """Training stopped on an error after the run directory was created: it diverged (a NaN or
+    infinite action, loss or parameter) or the algorithm or a write failed. ``config.yaml``
+    records ``result.failed`` (the reason) and no final ``model.zip`` is written, so the run is
+    never taken for a finished one; checkpoints from before the failure are kept."""
+
+    def __init__(self, run: Path, num_timesteps: int, reason: str) -> None:
+        super().__init__(f"training failed at {num_timesteps:,} steps: {reason}; nothing was saved as a finished "
+                         f"run (run directory {run})")
+        self.run = run
+        self.num_timesteps = num_timesteps
+        self.reason = reason
 
 
 def _one_line(exc: BaseException) -> str:
@@ -193,7 +208,7 @@ def versions() -> dict[str, str]:
 
 #: (lower bound, lower bound inclusive, upper bound) of numeric hyperparameters
 _NUMERIC_BOUNDS: dict[str, tuple[float, bool, float]] = {
-    "learning_rate": (0.0, False, math.inf), "clip_range": (0.0, False, math.inf),
+    "learning_rate": (0.0, False, 1.0), "clip_range": (0.0, False, math.inf),
     "max_grad_norm": (0.0, False, math.inf), "n_timesteps": (0.0, False, math.inf),
     "gamma": (0.0, False, 1.0), "gae_lambda": (0.0, True, 1.0), "tau": (0.0, False, 1.0),
     "vf_coef": (0.0, True, math.inf), "ent_coef": (0.0, True, math.inf), "noise_std": (0.0, True, math.inf),
@@ -202,11 +217,18 @@ _NUMERIC_BOUNDS: dict[str, tuple[float, bool, float]] = {
     "n_steps": (1, True, math.inf), "batch_size": (1, True, math.inf), "n_epochs": (1, True, math.inf),
     "buffer_size": (1, True, math.inf), "policy_delay": (1, True, math.inf), "n_envs": (1, True, MAX_N_ENVS),
     "learning_starts": (0, True, math.inf), "target_update_interval": (1, True, math.inf),
-    "stats_window_size": (1, True, math.inf)}
-#: hyperparameters whose value must be a whole number
+    "stats_window_size": (1, True, math.inf), "torch_threads": (1, True, 64), "n_eval_seeds": (1, True, 10_000),
+    "obs_norm_window": (0, True, math.inf), "distill_steps": (0, True, math.inf)}
+#: hyperparameters whose value must be a whole number (an int, or a float such as 1.0e+6 that is one; never a bool)
 _INTEGER_KEYS = frozenset({"n_steps", "batch_size", "n_epochs", "buffer_size", "policy_delay", "n_envs",
                            "learning_starts", "target_update_interval", "stats_window_size", "sde_sample_freq",
-                           "gradient_steps"})
+                           "gradient_steps", "torch_threads", "n_eval_seeds", "obs_norm_window", "distill_steps"})
+#: allowed values of the VecNormalize settings in ``normalize=dict(...)`` (bools, or (lower, upper] numbers)
+_NORMALIZE_BOUNDS: dict[str, tuple[float, float] | None] = {
+    "norm_obs": None, "norm_reward": None, "clip_obs": (0.0, math.inf), "clip_reward": (0.0, math.inf),
+    "gamma": (0.0, 1.0), "epsilon": (0.0, math.inf)}
+#: policy_kwargs log_std_init: the policy's initial std is exp(log_std_init) in action units ([-1, 1])
+_LOG_STD_INIT_RANGE = (-20.0, 2.0)
 #: set by TrainConfig / train, not through the hyperparameters
 _RESERVED_KEYS = {"seed": "seed", "device": "(always cpu)", "verbose": "verbose", "tensorboard_log": "tensorboard",
                   "env": "env_id", "_init_setup_model": "(internal)", "action_noise": "noise_type/noise_std"}
@@ -219,27 +241,99 @@ def _bounds_text(lo: float, inclusive: bool, hi: float) -> str:
     return f"in {'[' if inclusive else '('}{lo:g}, {hi:g}]"
 
 
+def _finite(v: Any) -> bool:
+    """``v`` is a finite number (a huge int counts as finite; floats are checked)."""
+    if isinstance(v, (int, np.integer)):
+        return True
+    return math.isfinite(v)
+
+
 def _check_number(key: str, v: Any) -> Any:
     if isinstance(v, str):  # YAML 1.1 reads 1e-4 and 3.0e6 as strings; rl-zoo accepts them as numbers
         try:
             v = float(v)
         except ValueError:
             pass
-    is_num = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+    is_num = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
     if key in _INTEGER_KEYS:
-        if not (is_num and math.isfinite(v) and float(v).is_integer()):
-            raise ConfigError("hyperparams", f"hyperparameter {key}={v!r} is invalid: must be a whole number")
+        if not (is_num and _finite(v) and (isinstance(v, (int, np.integer)) or float(v).is_integer())):
+            lo, inclusive, hi = _NUMERIC_BOUNDS.get(key, (-math.inf, True, math.inf))
+            what = "" if lo == -math.inf else " " + _bounds_text(lo, inclusive, hi)
+            raise ConfigError("hyperparams", f"hyperparameter {key}={v!r} is invalid: must be a whole number{what} "
+                                             "(an integer, or a float such as 1.0e+6 that is one)")
         v = int(v)
         if key == "gradient_steps" and not (v >= 1 or v == -1):
             raise ConfigError("hyperparams", f"hyperparameter gradient_steps={v!r} is invalid: must be >= 1 or -1")
-    elif key in _NUMERIC_BOUNDS and not (is_num and math.isfinite(v)):
-        raise ConfigError("hyperparams", f"hyperparameter {key}={v!r} is invalid: must be a finite number")
+    elif key in _NUMERIC_BOUNDS:
+        try:
+            ok = is_num and math.isfinite(float(v))
+        except OverflowError:  # an int beyond float's range
+            ok = False
+        if not ok:
+            raise ConfigError("hyperparams", f"hyperparameter {key}={v!r} is invalid: must be a finite number "
+                                             f"{_bounds_text(*_NUMERIC_BOUNDS[key])}")
+        v = float(v)
     if key in _NUMERIC_BOUNDS:
         lo, inclusive, hi = _NUMERIC_BOUNDS[key]
         if not ((v >= lo if inclusive else v > lo) and v <= hi):
             raise ConfigError("hyperparams", f"hyperparameter {key}={v!r} is invalid: must be "
                                              f"{_bounds_text(lo, inclusive, hi)}")
     return float(v) if key in _NUMERIC_BOUNDS and key not in _INTEGER_KEYS else v
+
+
+def _check_normalize(v: dict[str, Any]) -> dict[str, Any]:
+    """The VecNormalize settings of ``normalize=dict(...)``, each checked (bools; finite numbers > 0,
+    ``gamma`` in (0, 1]); whole numbers come back as floats."""
+    bad = sorted(map(str, set(v) - set(_NORMALIZE_KEYS)))
+    if bad:
+        raise ConfigError("hyperparams", f"hyperparameter normalize has unknown key(s) {bad}: valid "
+                                         f"keys are {list(_NORMALIZE_KEYS)}")
+    out = {}
+    for k, x in v.items():
+        bounds = _NORMALIZE_BOUNDS[k]
+        if bounds is None:
+            if not isinstance(x, bool):
+                raise ConfigError("hyperparams", f"hyperparameter normalize {k}={x!r} is invalid: must be true or "
+                                                 "false")
+            out[k] = x
+            continue
+        lo, hi = bounds
+        y = x
+        if isinstance(y, str):
+            try:
+                y = float(y)
+            except ValueError:
+                pass
+        ok = isinstance(y, (int, float, np.integer, np.floating)) and not isinstance(y, (bool, np.bool_))
+        try:
+            ok = ok and math.isfinite(float(y)) and lo < float(y) <= hi
+        except OverflowError:
+            ok = False
+        if not ok:
+            raise ConfigError("hyperparams", f"hyperparameter normalize {k}={x!r} is invalid: must be a finite number "
+                                             f"{_bounds_text(lo, False, hi)}")
+        out[k] = float(y)
+    return out
+
+
+def _check_log_std_init(x: Any) -> float:
+    lo, hi = _LOG_STD_INIT_RANGE
+    y = x
+    if isinstance(y, str):
+        try:
+            y = float(y)
+        except ValueError:
+            pass
+    ok = isinstance(y, (int, float, np.integer, np.floating)) and not isinstance(y, (bool, np.bool_))
+    try:
+        ok = ok and math.isfinite(float(y)) and lo <= float(y) <= hi
+    except OverflowError:
+        ok = False
+    if not ok:
+        raise ConfigError("hyperparams", f"hyperparameter policy_kwargs log_std_init={x!r} is invalid: must be a "
+                                         f"finite number in [{lo:g}, {hi:g}] (the policy's initial std is "
+                                         "exp(log_std_init) in action units)")
+    return float(y)
 
 
 def check_hyperparams(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
@@ -279,16 +373,15 @@ def check_hyperparams(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
             v = _check_number("n_steps", v)
         elif key == "normalize":
             if isinstance(v, dict):
-                bad = sorted(set(v) - set(_NORMALIZE_KEYS))
-                if bad:
-                    raise ConfigError("hyperparams", f"hyperparameter normalize has unknown key(s) {bad}: valid "
-                                                     f"keys are {list(_NORMALIZE_KEYS)}")
+                v = _check_normalize(v)
             elif not isinstance(v, bool):
                 raise ConfigError("hyperparams", f"hyperparameter normalize={v!r} is invalid: must be true, false "
                                                  "or dict(norm_obs=..., norm_reward=..., ...)")
         elif key == "policy_kwargs":
             if v is not None and not isinstance(v, dict):
                 raise ConfigError("hyperparams", f"hyperparameter policy_kwargs={v!r} is invalid: must be a dict")
+            if v is not None and "log_std_init" in v:
+                v = {**v, "log_std_init": _check_log_std_init(v["log_std_init"])}
         elif key == "policy":
             if not isinstance(v, str):
                 raise ConfigError("hyperparams", f"hyperparameter policy={v!r} is invalid: must be a policy name "
@@ -401,9 +494,22 @@ class TrainConfig:
                     or Path(n).name != n):
                 raise ConfigError("run_name", f"run_name={n!r} is invalid: must be a single directory name (no "
                                               "path separators, not '.' or '..'); use out_dir for the parent")
+        for name in ("include_base_action", "progress_bar", "tensorboard", "final_eval"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(name, f"{name}={getattr(self, name)!r} is invalid: must be True or False")
+        if not isinstance(self.out_dir, (str, Path)) or str(self.out_dir) == "":
+            raise ConfigError("out_dir", f"out_dir={self.out_dir!r} is invalid: must be a directory path")
         out = Path(self.out_dir)
         if out.exists() and not out.is_dir():
             raise ConfigError("out_dir", f"out_dir={self.out_dir!r} is invalid: it exists and is not a directory")
+        anc = out
+        while not anc.exists() and anc != anc.parent:
+            anc = anc.parent
+        if not anc.is_dir():
+            raise ConfigError("out_dir", f"out_dir={self.out_dir!r} cannot be created: {anc} is not a directory")
+        if not os.access(anc, os.W_OK):
+            raise ConfigError("out_dir", f"out_dir={self.out_dir!r} cannot be written: {anc} is not writable "
+                                         "(read-only file system or no permission)")
         try:
             check_tier_training_seeds(self.env_id, [self.seed + i for i in range(self.n_envs or 16)]
                                       + [self.eval_seed])
@@ -463,7 +569,9 @@ def _make_venv(env_id: str, env_kwargs: dict, n_envs: int, seed: int, mode: str,
 
 
 def _normalize_kwargs(normalize: Any, gamma: float) -> dict[str, Any] | None:
-    if not normalize:
+    """VecNormalize's keywords: None for ``normalize=False``; ``True`` and a dict (even an empty
+    one, as rl-zoo reads ``dict()``) normalise, with ``gamma`` the algorithm's unless given."""
+    if normalize is False or normalize is None:
         return None
     kw = dict(normalize) if isinstance(normalize, dict) else {}
     kw.setdefault("gamma", gamma)
@@ -711,11 +819,12 @@ def _plan(cfg: TrainConfig) -> _Plan:
         where = "hyperparams" if cfg.hyperparams else "hyperparams_file"
         raise ConfigError(where, f"hyperparameters could not be read: {_one_line(exc)}") from None
     hp = check_hyperparams(cfg.algo, hp)
+    n_envs = int(cfg.n_envs if cfg.n_envs is not None else hp.get("n_envs", 1))
     if cfg.algo in BATCHED_ALGOS:
         from agents.batched_ppo import _check_teacher, check_bppo_hyperparams
 
         try:
-            check_bppo_hyperparams(hp)
+            check_bppo_hyperparams(hp, n_envs=n_envs)
             _check_teacher(hp, cfg.mode, cfg.env_id)
         except ValueError as exc:
             raise ConfigError("hyperparams", str(exc)) from None
@@ -723,10 +832,11 @@ def _plan(cfg: TrainConfig) -> _Plan:
         raise ConfigError("total_timesteps", "total_timesteps is not given and the hyperparameters have no "
                                              "n_timesteps")
     total = int(cfg.total_timesteps if cfg.total_timesteps is not None else hp["n_timesteps"])
-    n_envs = int(cfg.n_envs if cfg.n_envs is not None else hp.get("n_envs", 1))
     residual = cfg.residual_kwargs() if cfg.mode == "residual" else None
     algo_kwargs = {k: v for k, v in hp.items() if k not in _ZOO_KEYS}
-    gamma = float(algo_kwargs.get("gamma", 0.99))
+    # the algorithm's own default gamma (bppo's is 0.995) when the hyperparameters give none
+    gamma_default = inspect.signature(cls.__init__).parameters["gamma"].default
+    gamma = float(algo_kwargs.get("gamma", gamma_default))
     norm_kw = _normalize_kwargs(hp.get("normalize", False), gamma)
     try:
         gym.make(cfg.env_id, **cfg.env_kwargs).close()
@@ -824,7 +934,12 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
 
     run = plan.run
     created = not run.exists()
-    (run / "monitor").mkdir(parents=True, exist_ok=True)
+    try:
+        (run / "monitor").mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        if created:
+            shutil.rmtree(run, ignore_errors=True)
+        raise ConfigError("out_dir", f"cannot write the run directory {run}: {_one_line(exc)}") from None
     try:
         set_random_seed(cfg.seed)
         tb = str(run / "tb") if cfg.tensorboard and _tensorboard_available() else None
@@ -853,9 +968,11 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
                                         else repr(v)) for k, v in plan.hp.items()},
                     "normalize": plan.norm_kw, "residual": plan.residual, "versions": versions()}
         _write_yaml(run / "config.yaml", resolved)
-    except BaseException:
+    except BaseException as exc:
         if created:
             shutil.rmtree(run, ignore_errors=True)  # nothing was trained: leave nothing behind
+        if isinstance(exc, OSError):
+            raise ConfigError("out_dir", f"cannot write the run directory {run}: {_one_line(exc)}") from None
         raise
 
     t0 = time.perf_counter()
@@ -867,13 +984,24 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
         interrupted = sigint.requested
     except KeyboardInterrupt:
         interrupted = True
+    except Exception as exc:  # noqa: BLE001 (NaN parameters fail in torch's distributions, NaN actions in the env)
+        progress.close()
+        venv.close()
+        steps = int(model.num_timesteps)
+        nan = re.search(r"\bnan\b|\binf\b|invalid values", str(exc), re.IGNORECASE) is not None
+        reason = ("training diverged (NaN or infinite values): " if nan else f"{cfg.algo} failed: ") + _one_line(exc)
+        _record_failure(run, resolved, steps, start_steps, reason)
+        raise TrainingFailed(run, steps, reason) from exc
     finally:
         progress.close()
     elapsed = time.perf_counter() - t0
-    model.save(run / "model.zip")
-    if isinstance(venv, VecNormalize):
-        venv.save(str(run / "vecnormalize.pkl"))
-        write_obs_stats(venv, run / "vecnormalize.json")
+    try:
+        _save_sb3(model, venv, run)
+    except OSError as exc:
+        venv.close()
+        steps = int(model.num_timesteps)
+        _record_failure(run, resolved, steps, start_steps, f"a write failed: {_one_line(exc)}")
+        raise TrainingFailed(run, steps, f"a write failed: {_one_line(exc)}") from exc
     steps = int(model.num_timesteps)
     resolved["result"] = {"num_timesteps": steps, "start_timesteps": start_steps,
                           "wall_clock_s": round(elapsed, 2),
@@ -897,6 +1025,67 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
     return (run, model) if return_model else run
 
 
+def _check_bppo_resume(cfg: TrainConfig, plan: _Plan, obs_dim: int) -> int:
+    """Refuse a bppo checkpoint that cannot continue this run (another observation width or
+    policy_kwargs, missing or unfit observation statistics); returns its steps."""
+    from agents.batched_ppo import _load_model_file, _policy_kwargs
+
+    path = Path(cfg.resume_from)
+    try:
+        data = _load_model_file(path)
+        old_pk = _policy_kwargs(data.get("policy_kwargs"))
+        steps = int(data["steps_done"])
+        width = int(data["obs_dim"])
+        if not isinstance(data.get("state_dict"), dict) or not isinstance(data.get("ret_rms"), dict):
+            raise ValueError(f"{path} is not a complete bppo model file (no state_dict or ret_rms)")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ConfigError("resume_from", f"resume_from={cfg.resume_from!r} cannot be resumed: {_one_line(exc)}") \
+            from None
+    new_pk = _policy_kwargs(plan.hp.get("policy_kwargs"))
+    if old_pk != new_pk:
+        diff = sorted(k for k in new_pk if old_pk.get(k) != new_pk[k])
+        was, asked = {k: old_pk.get(k) for k in diff}, {k: new_pk[k] for k in diff}
+        raise ConfigError("resume_from", f"resume_from={cfg.resume_from!r} was trained with policy_kwargs {was}, this "
+                                         f"run asks for {asked}: resume with the checkpoint's policy_kwargs")
+    if width != obs_dim:
+        raise ConfigError("resume_from", f"resume_from={cfg.resume_from!r} observes {width} features, this run's "
+                                         f"observation has {obs_dim}: resume with the checkpoint's observation "
+                                         "settings (--obs, --history-len, --no-base-action, mode, env)")
+    if plan.norm_kw is not None and plan.norm_kw.get("norm_obs", True):
+        sp = _stats_path(path, ".json")
+        if not sp.is_file():
+            raise ConfigError("resume_from", f"{sp} is missing: resuming bppo with observation normalisation "
+                                             f"needs the statistics saved with {path} (without them the statistics "
+                                             "would restart from zero)")
+        try:
+            st = read_obs_stats(sp)
+        except ValueError as exc:
+            raise ConfigError("resume_from", str(exc)) from None
+        if st.mean.shape != (obs_dim,):
+            raise ConfigError("resume_from", f"{sp} has statistics for {st.mean.shape[0]} features, the model "
+                                             f"observes {obs_dim}")
+    if plan.total <= steps:
+        raise ConfigError("total_timesteps", f"total_timesteps={plan.total} is not beyond the checkpoint's "
+                                             f"{steps} steps: give a larger total_timesteps to resume")
+    return steps
+
+
+def _save_sb3(model: Any, venv: Any, run: Path) -> None:
+    """The final model.zip (and the statistics), each written whole or not at all."""
+    import io
+    import pickle
+
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    buf = io.BytesIO()
+    model.save(buf)
+    _write_atomic(run / "model.zip", buf.getvalue())
+    if isinstance(venv, VecNormalize):
+        # VecNormalize.save pickles the wrapper itself (its __getstate__ leaves the venv out): the same bytes
+        _write_atomic(run / "vecnormalize.pkl", pickle.dumps(venv))
+        write_obs_stats(venv, run / "vecnormalize.json")
+
+
 def _train_batched(cfg: TrainConfig, plan: _Plan, return_model: bool):
     """:func:`train` for ``algo="bppo"`` (:mod:`agents.batched_ppo`), same run-directory contract."""
     from agents.batched_env import BatchedTrainEnv
@@ -910,19 +1099,14 @@ def _train_batched(cfg: TrainConfig, plan: _Plan, return_model: bool):
     except ValueError as exc:
         raise ConfigError("eval_seed", str(exc)) from None
     try:  # a trial of the env and the observation before anything is written
-        BatchedTrainEnv(cfg.env_id, 1, seed=cfg.seed, env_kwargs=cfg.env_kwargs, builder=builder).close()
+        trial = BatchedTrainEnv(cfg.env_id, 1, seed=cfg.seed, env_kwargs=cfg.env_kwargs, builder=builder)
     except ValueError as exc:
         raise ConfigError("observation", f"the observation settings are refused: {_one_line(exc)}") from None
-    if cfg.resume_from is not None:
-        from agents.batched_ppo import _load_model_file
-
-        try:
-            _load_model_file(Path(cfg.resume_from))
-        except ValueError as exc:
-            raise ConfigError("resume_from", str(exc)) from None
+    obs_dim = trial.obs_dim
+    trial.close()
+    start = _check_bppo_resume(cfg, plan, obs_dim) if cfg.resume_from is not None else 0
     run = plan.run
     created = not run.exists()
-    run.mkdir(parents=True, exist_ok=True)
     checkpoint_freq, eval_freq = cfg.resolved_freqs()
     resolved = {"run": {**asdict(cfg), "total_timesteps": plan.total, "n_envs": plan.n_envs, "run_dir": str(run),
                         "checkpoint_freq": checkpoint_freq, "eval_freq": eval_freq,
@@ -934,31 +1118,47 @@ def _train_batched(cfg: TrainConfig, plan: _Plan, return_model: bool):
                             "torch": int(plan.hp.get("torch_threads", 1))},
                 "versions": versions(), "steps_done": 0, "train_seconds": 0.0}
     try:
+        run.mkdir(parents=True, exist_ok=True)
         _write_yaml(run / "config.yaml", resolved)
-    except BaseException:
+    except BaseException as exc:
         if created:
             shutil.rmtree(run, ignore_errors=True)
+        if isinstance(exc, OSError):
+            raise ConfigError("out_dir", f"cannot write the run directory {run}: {_one_line(exc)}") from None
         raise
-    start = 0
-    if cfg.resume_from is not None:
-        from agents.batched_ppo import _load_model_file
-
-        start = int(_load_model_file(Path(cfg.resume_from))["steps_done"])
-        if plan.total <= start:
-            shutil.rmtree(run, ignore_errors=True)
-            raise ConfigError("total_timesteps", f"total_timesteps={plan.total} is not beyond the checkpoint's "
-                                                 f"{start} steps: give a larger total_timesteps to resume")
     cfg_run = TrainConfig(**{**asdict(cfg), "checkpoint_freq": checkpoint_freq, "eval_freq": eval_freq})
     progress = _Progress(plan.total - start, start, cfg.progress_bar)
-    with _StopOnSigint() as sigint:
-        result, interrupted = train_bppo(cfg_run, plan, resolved, run, progress, sigint, _write_yaml)
+    try:
+        with _StopOnSigint() as sigint:
+            result, interrupted = train_bppo(cfg_run, plan, resolved, run, progress, sigint, _write_yaml)
+    except OSError as exc:  # a write failed (disk full, read-only): the run is not finished
+        steps = int(resolved.get("steps_done", start))
+        _record_failure(run, resolved, steps, start, f"a write failed: {_one_line(exc)}")
+        raise TrainingFailed(run, steps, f"a write failed: {_one_line(exc)}") from exc
     resolved["result"] = result
     _write_yaml(run / "config.yaml", resolved)
+    if result.get("failed"):
+        print(f"training failed at {result['num_timesteps']:,} steps: {result['failed']}; config.yaml records "
+              f"result.failed and no model.zip was written (checkpoints before it are kept) in {run}",
+              file=sys.stderr)
+        raise TrainingFailed(run, result["num_timesteps"], result["failed"])
     if interrupted:
         print(f"training interrupted at {result['num_timesteps']:,} steps: model.zip, normalisation statistics and "
               f"config.yaml (interrupted: true) saved in {run}", file=sys.stderr)
         raise TrainingInterrupted(run, result["num_timesteps"])
     return (run, load_agent(run)) if return_model else run
+
+
+def _record_failure(run: Path, resolved: dict, steps: int, start: int, reason: str) -> None:
+    """Record ``result.failed`` in the run's config.yaml if it can still be written (best effort:
+    the failure may be the disk itself); a final model.zip of the failed run is removed."""
+    resolved["result"] = {"num_timesteps": int(steps), "start_timesteps": int(start), "interrupted": False,
+                          "failed": reason}
+    try:
+        (run / "model.zip").unlink(missing_ok=True)
+        _write_yaml(run / "config.yaml", resolved)
+    except OSError:
+        pass
 
 
 def _final_score(cfg: TrainConfig, model: Any, venv: Any, resolved: dict) -> dict | None:
@@ -980,10 +1180,20 @@ def _final_score(cfg: TrainConfig, model: Any, venv: Any, resolved: dict) -> dic
 
 
 def _write_yaml(path: Path, data: dict) -> None:
+    text = yaml.safe_dump(json.loads(json.dumps(data, default=str)), sort_keys=False)
+    _write_atomic(path, text.encode())
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file beside it: ``path`` is either its old
+    or its new content, and a failed write (disk full, read-only) leaves no temporary file."""
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as f:
-        yaml.safe_dump(json.loads(json.dumps(data, default=str)), f, sort_keys=False)
-    tmp.replace(path)
+    try:
+        tmp.write_bytes(data)
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 # --- loading and evaluation ---------------------------------------------------------------
@@ -1065,6 +1275,15 @@ class Agent:
         return action, (self._lstm if state is not None else state)
 
 
+def _failure(cfg_path: Path) -> str | None:
+    """``result.failed`` of a run's config.yaml (None if absent or unreadable)."""
+    try:
+        res = (yaml.safe_load(cfg_path.read_text()) or {}).get("result")
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, AttributeError):
+        return None
+    return str(res["failed"]) if isinstance(res, dict) and res.get("failed") else None
+
+
 def load_agent(path: str | Path, name: str | None = None) -> Agent:
     """Load a run directory (its ``model.zip``) or a ``.zip`` model/checkpoint inside a run.
 
@@ -1081,6 +1300,11 @@ def load_agent(path: str | Path, name: str | None = None) -> Agent:
     model_path = p / "model.zip" if p.is_dir() else p
     if not model_path.is_file():
         ckpts = _checkpoints(p) if p.is_dir() else []
+        failed = _failure(p / "config.yaml") if p.is_dir() else None
+        if failed:
+            raise FileNotFoundError(f"model file {model_path} does not exist: the training failed ({failed}; "
+                                    f"{p / 'config.yaml'} result.failed)"
+                                    + (f"; its newest checkpoint from before is {ckpts[-1]}" if ckpts else ""))
         hint = (f"; the run has no final model (interrupted or still training?): its newest checkpoint is "
                 f"{ckpts[-1]}" if ckpts else ": give a run directory or a model .zip")
         raise FileNotFoundError(f"model file {model_path} does not exist{hint}")
