@@ -19,6 +19,11 @@ from auv_follow_env import dynamics as dyn
 from auv_follow_env.kernel_one import packed_arrays, reset_one, step_one
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1
 from auv_follow_env.params import LATENCY_MODELS, RANGEABLE, Condition, EnvConfig, VehicleParams
+from auv_follow_env.warm import guard_numba_cache
+
+# a numba cache file that cannot be read back is reported, removed and recompiled (not an
+# UnpicklingError at every first call); both envs load their kernels through this module
+guard_numba_cache()
 
 __all__ = ["BatchSim", "param_row", "sample_params", "params_from_uniforms", "sample_params_v1",
            "sample_params_v1_many", "link_row", "config_vector", "queue_capacity", "SINCOS", "check_sincos"]

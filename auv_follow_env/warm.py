@@ -25,18 +25,152 @@ all. The vector env hands its kernels float64 actions whatever the caller's dtyp
 float64 is exact), so one specialisation serves both; the single env's step (kernel_one) is
 compiled for each dtype instead (a conversion costs about 0.4 us, a tenth of its step). What
 the controllers and the metrics compile on their first use is not included.
+
+Interrupting the command (Ctrl-C, SIGINT or SIGTERM to it alone) stops its running jobs too and
+prints one line; what they had finished stays in the cache.
+
+**A damaged cache repairs itself.** numba reads each function's cache index (``*.nbi``) and
+data (``*.nbc``) with pickle; a file that cannot be read back (truncated by a full disk, or
+overwritten) made every env raise ``UnpicklingError`` from deep inside numba. Importing the env
+(:mod:`auv_follow_env.sim`) installs :func:`guard_numba_cache`: such a file is reported in one
+line on stderr (its path and what to do), removed, and the function recompiled and cached again.
 """
 
 from __future__ import annotations
 
 import argparse
+import glob
+import os
+import signal
 import subprocess
 import sys
 import tempfile
 import time
 from typing import Any
 
-__all__ = ["JOBS", "warm", "main"]
+__all__ = ["JOBS", "warm", "main", "guard_numba_cache", "CACHE_MESSAGE", "WarmJobFailed"]
+
+#: how the cache guard's line on stderr starts (warm passes such lines of its jobs on)
+CACHE_MESSAGE = "auv_follow_env: numba cache file"
+_GUARD_MARK = "_auv_follow_env_guard"
+_reported: set[str] = set()  # cache folders already reported by this process
+
+
+def _cache_folder_hint() -> str:
+    d = os.environ.get("NUMBA_CACHE_DIR")
+    return d if d else os.path.join(os.path.dirname(os.path.abspath(__file__)), "__pycache__")
+
+
+def _repair(paths: list[str], exc: BaseException) -> None:
+    """Remove the unreadable cache files ``paths`` (the first is the one that failed); report it
+    once per cache folder and process, in one line on stderr."""
+    failed = []
+    for path in paths:
+        try:
+            os.remove(path)
+        except FileNotFoundError:
+            pass
+        except OSError as e:
+            failed.append(f"{path}: {e.strerror or e}")
+    folder = os.path.dirname(paths[0])
+    if folder in _reported and not failed:
+        return
+    _reported.add(folder)
+    why = (str(exc).splitlines() or [""])[0][:120]
+    if failed:
+        what = (f"could not remove it ({'; '.join(failed)}): delete the folder {folder} by hand and run "
+                f"`python -m auv_follow_env.warm`")
+    else:
+        what = (f"removed it and recompiling (further unreadable files in {folder} are replaced without a "
+                f"message); if this repeats, delete that folder and run `python -m auv_follow_env.warm`")
+    print(f"{CACHE_MESSAGE} {paths[0]} is unreadable ({type(exc).__name__}: {why}): {what}", file=sys.stderr,
+          flush=True)
+
+
+def guard_numba_cache() -> bool:
+    """Make numba's on-disk cache recover from a file it cannot read back, in this process.
+
+    numba unpickles a function's index (``*.nbi``) and data files (``*.nbc``) at its first call;
+    a damaged file raises ``UnpicklingError`` (or ``EOFError``, ``ValueError``, ...) there, every
+    time. With the guard, such a file is removed and reported in one line on stderr (path, what to
+    do), the function is compiled as if it had never been cached and saved again: one recompile,
+    then the cache is whole. Errors reading the files (``OSError``, e.g. permissions) still raise.
+    Idempotent; returns False (and changes nothing) if this numba has not the internals it wraps.
+    """
+    try:
+        from numba.core import caching
+    except ImportError:  # pragma: no cover - numba is a dependency
+        return False
+    files, cache = getattr(caching, "IndexDataCacheFile", None), getattr(caching, "Cache", None)
+    if files is None or cache is None or not all(callable(getattr(files, n, None)) for n in
+                                                 ("_load_index", "_load_data", "_data_path")) \
+            or not callable(getattr(cache, "_load_overload", None)):
+        return False
+    if getattr(files._load_index, _GUARD_MARK, False):
+        return True
+    load_index, load_data, load_overload = files._load_index, files._load_data, cache._load_overload
+
+    def _load_index(self):
+        try:
+            return load_index(self)
+        except OSError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - whatever unpickling a damaged file raises
+            _repair([self._index_path], exc)
+            return {}  # (as for a missing index: the function compiles and a new index is saved)
+
+    def _load_data(self, name):
+        try:
+            return load_data(self, name)
+        except OSError:
+            raise
+        except Exception as exc:  # noqa: BLE001
+            _repair([self._data_path(name)], exc)
+            return None  # (as for an entry that is not cached: the function compiles)
+
+    def _load_overload(self, sig, target_context):
+        try:
+            return load_overload(self, sig, target_context)
+        except OSError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a data file that unpickles but cannot be rebuilt
+            cf = self._cache_file
+            base = cf._index_path[:-len(".nbi")]
+            _repair([cf._index_path] + sorted(glob.glob(glob.escape(base) + ".*.nbc")), exc)
+            return None
+
+    for f in (_load_index, _load_data, _load_overload):
+        setattr(f, _GUARD_MARK, True)
+    files._load_index, files._load_data, cache._load_overload = _load_index, _load_data, _load_overload
+    return True
+
+
+class WarmJobFailed(RuntimeError):
+    """A warm job exited non-zero; ``job``, ``returncode`` and its ``stderr`` are attributes."""
+
+    def __init__(self, job: str, returncode: int, stderr: str) -> None:
+        super().__init__(f"warm job {job!r} failed (exit {returncode}):\n{stderr}")
+        self.job, self.returncode, self.stderr = job, returncode, stderr
+
+
+class _Stopped(BaseException):
+    """SIGTERM or SIGHUP to the command (raised by its handler, like KeyboardInterrupt for SIGINT)."""
+
+
+def _stop(running: dict) -> None:
+    """Terminate the running jobs, wait briefly, kill those left; close their logs."""
+    for proc, _, _ in running.values():
+        if proc.poll() is None:
+            proc.terminate()
+    deadline = time.monotonic() + 2.0
+    for proc, _, log in running.values():
+        try:
+            proc.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        log.close()
+    running.clear()
 
 #: job name -> Python code run in a fresh process (argv[1] the env id)
 JOBS: dict[str, str] = {
@@ -58,7 +192,10 @@ def warm(jobs: tuple[str, ...] = tuple(JOBS), env_id: str = "AUVFollow-Hard-v1",
          verbose: bool = True) -> dict[str, float]:
     """Run ``jobs`` (names of :data:`JOBS`) in fresh processes, at most ``processes`` at once;
     return each job's wall seconds. Raises ``ValueError`` on an unknown job or id or a
-    ``processes`` below 1, ``RuntimeError`` (with the job's stderr) if a job fails."""
+    ``processes`` below 1, :class:`WarmJobFailed` (a ``RuntimeError``, with the job's stderr) if a
+    job fails. However the call ends (a failure, KeyboardInterrupt, any exception), it stops the
+    jobs still running before it returns or raises. With ``verbose``, each job's seconds and the
+    cache guard's reports of files it repaired (:func:`guard_numba_cache`) are printed."""
     unknown = [j for j in jobs if j not in JOBS]
     if unknown:
         raise ValueError(f"jobs={unknown!r} are unknown: choose from {sorted(JOBS)}")
@@ -72,29 +209,34 @@ def warm(jobs: tuple[str, ...] = tuple(JOBS), env_id: str = "AUVFollow-Hard-v1",
     pending = list(dict.fromkeys(jobs))
     running: dict[str, tuple[subprocess.Popen, float, Any]] = {}
     out: dict[str, float] = {}
-    while pending or running:
-        while pending and len(running) < processes:
-            job = pending.pop(0)
-            log = tempfile.TemporaryFile(mode="w+")  # (a pipe could fill up and block the job)
-            proc = subprocess.Popen([sys.executable, "-c", JOBS[job], env_id], stdout=subprocess.DEVNULL,
-                                    stderr=log, text=True)
-            running[job] = (proc, time.perf_counter(), log)
-        for job, (proc, t0, log) in list(running.items()):
-            if proc.poll() is None:
-                continue
-            del running[job]
-            log.seek(0)
-            err = log.read()
-            log.close()
-            if proc.returncode != 0:
-                for other, _, other_log in running.values():
-                    other.kill()
-                    other_log.close()
-                raise RuntimeError(f"warm job {job!r} failed (exit {proc.returncode}):\n{err}")
-            out[job] = time.perf_counter() - t0
-            if verbose:
-                print(f"  {job:<8} {out[job]:6.1f} s", flush=True)
-        time.sleep(0.05)
+    seen: set[str] = set()
+    try:
+        while pending or running:
+            while pending and len(running) < processes:
+                job = pending.pop(0)
+                log = tempfile.TemporaryFile(mode="w+")  # (a pipe could fill up and block the job)
+                running[job] = (subprocess.Popen([sys.executable, "-c", JOBS[job], env_id],
+                                                 stdout=subprocess.DEVNULL, stderr=log, text=True),
+                                time.perf_counter(), log)
+            for job, (proc, t0, log) in list(running.items()):
+                if proc.poll() is None:
+                    continue
+                del running[job]
+                log.seek(0)
+                err = log.read()
+                log.close()
+                if proc.returncode != 0:
+                    raise WarmJobFailed(job, proc.returncode, err)
+                out[job] = time.perf_counter() - t0
+                if verbose:
+                    for line in err.splitlines():  # the cache guard's reports (repaired files)
+                        if line.startswith(CACHE_MESSAGE) and line not in seen:
+                            seen.add(line)
+                            print(f"  {line}", flush=True)
+                    print(f"  {job:<8} {out[job]:6.1f} s", flush=True)
+            time.sleep(0.05)
+    finally:  # an error, Ctrl-C or a signal: no job outlives the call
+        _stop(running)
     return out
 
 
@@ -107,10 +249,34 @@ def main(argv: list[str] | None = None) -> int:
     print("compiling the env's numba kernels into the cache (about a minute the first time, seconds after)",
           flush=True)
     t0 = time.perf_counter()
+
+    def stopped(signum, frame):
+        raise _Stopped(signal.Signals(signum).name)
+
+    previous = {sig: signal.signal(sig, stopped) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
         warm(tuple(a.jobs), a.env_id, a.processes)
     except ValueError as e:
         p.error(str(e))
+    except (KeyboardInterrupt, _Stopped) as e:
+        name = str(e) if isinstance(e, _Stopped) else "SIGINT"
+        print(f"warm: stopped by {name}: its compile jobs were stopped too (what they had finished is cached; "
+              f"run it again to finish)", file=sys.stderr, flush=True)
+        return 143 if name == "SIGTERM" else 129 if name == "SIGHUP" else 130
+    except WarmJobFailed as e:
+        fd, path = tempfile.mkstemp(prefix=f"auv-follow-warm-{e.job}-", suffix=".log")
+        with os.fdopen(fd, "w") as f:
+            f.write(e.stderr)
+        last = next((line for line in reversed(e.stderr.splitlines()) if line.strip()), "(no output)")
+        hint = ""
+        if "pickl" in e.stderr.lower() or ".nbi" in e.stderr or ".nbc" in e.stderr:
+            hint = f"; numba's cache may be damaged: delete {_cache_folder_hint()} and run warm again"
+        print(f"warm: job {e.job!r} failed (exit {e.returncode}): {last.strip()}{hint} (its output: {path})",
+              file=sys.stderr, flush=True)
+        return 1
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     print(f"done in {time.perf_counter() - t0:.1f} s", flush=True)
     return 0
 
