@@ -76,14 +76,15 @@ def _repair(paths: list[str], exc: BaseException) -> None:
     if folder in _reported and not failed:
         return
     _reported.add(folder)
-    why = (str(exc).splitlines() or [""])[0][:120]
+    # (the exception's message, not its class: an "UnpicklingError" in the output reads as the crash it replaces)
+    why = (str(exc).splitlines() or [""])[0][:120] or type(exc).__name__
     if failed:
         what = (f"could not remove it ({'; '.join(failed)}): delete the folder {folder} by hand and run "
                 f"`python -m auv_follow_env.warm`")
     else:
         what = (f"removed it and recompiling (further unreadable files in {folder} are replaced without a "
                 f"message); if this repeats, delete that folder and run `python -m auv_follow_env.warm`")
-    print(f"{CACHE_MESSAGE} {paths[0]} is unreadable ({type(exc).__name__}: {why}): {what}", file=sys.stderr,
+    print(f"{CACHE_MESSAGE} {paths[0]} is unreadable (damaged: {why}): {what}", file=sys.stderr,
           flush=True)
 
 

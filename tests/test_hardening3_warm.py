@@ -169,7 +169,7 @@ def test_warm_and_the_env_recover_from_a_damaged_env_cache(tmp_path):
         path.write_bytes(JUNK)
     res = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
-    assert "UnpicklingError" not in res.stderr and CACHE_MESSAGE in res.stdout
+    assert "UnpicklingError" not in res.stderr + res.stdout and CACHE_MESSAGE in res.stdout
     step = ("import numpy as np, gymnasium as gym, auv_follow_env\n"
             "e = gym.make('AUVFollow-Hard-v1'); e.reset(seed=0); e.step(np.zeros(3))")
     res = subprocess.run([sys.executable, "-c", step], cwd=ROOT, env=env, capture_output=True, text=True)
