@@ -56,8 +56,14 @@ class Renderer:
         self.window = None
         self.clock = None
         if mode == "human":
-            pygame.display.init()  # not pygame.init(): that would start the mixer (audio) too
-            self.window = pygame.display.set_mode((SIZE, SIZE))
+            try:
+                pygame.display.init()  # not pygame.init(): that would start the mixer (audio) too
+                self.window = pygame.display.set_mode((SIZE, SIZE))
+            except pygame.error as exc:
+                driver = os.environ.get("SDL_VIDEODRIVER")
+                raise RuntimeError(f"render_mode='human' cannot open a window ({exc}; SDL_VIDEODRIVER="
+                                   f"{driver!r}): use render_mode='rgb_array' for frames without a display, or "
+                                   f"set SDL_VIDEODRIVER=dummy on a machine without one") from exc
             pygame.display.set_caption("AUVFollow")
             self.clock = pygame.time.Clock()
         pygame.font.init()

@@ -123,6 +123,31 @@ def test_human_mode_never_starts_pygame_audio(audio):
     assert "ALSA" not in res.stderr
 
 
+def test_human_mode_without_a_usable_display_is_one_clear_error():
+    code = ("import gymnasium as gym, auv_follow_env\n"
+            "e = gym.make('AUVFollow-S4-v0', render_mode='human')\n"
+            "try:\n    e.reset(seed=0)\nexcept RuntimeError as x:\n    print(x)")
+    env = {**os.environ, "SDL_VIDEODRIVER": "no-such-driver"}
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert "render_mode='human' cannot open a window" in res.stdout and "SDL_VIDEODRIVER=dummy" in res.stdout
+    assert "'no-such-driver'" in res.stdout
+
+
+def test_v1_frame_without_any_fix_says_so_and_marks_nothing():
+    """Every packet lost (loss_prob=1): the follower never hears the target, so no marker may be
+    drawn (the newest-fix colour appears only in the legend, above row 160)."""
+    env = gym.make("AUVFollow-v1", render_mode="rgb_array", loss_prob=1.0)
+    obs, _ = env.reset(seed=0)
+    for _ in range(40):
+        obs, *_ = env.step(np.zeros(3, np.float32))
+    assert obs[layout.OBS_INDEX_V1["has_packet"]] == 0.0
+    frame = env.render()
+    assert not (frame[160:] == NEWEST_FIX_COLOUR).all(axis=2).any()
+    assert (frame[:160] == NEWEST_FIX_COLOUR).all(axis=2).any()  # the legend entry
+    env.close()
+
+
 def test_record_video_writes_a_playable_file(tmp_path):
     pytest.importorskip("moviepy")
     from gymnasium.wrappers import RecordVideo
