@@ -2,8 +2,8 @@
 
 The page embeds plotly.js inline (no CDN, no server: open the file) and shows
 
-* the leaderboard (the table of :func:`agents.benchmark.leaderboard_markdown`, as HTML, and a
-  bar chart of the steady-state IQM with its 95 % CI per tier);
+* the leaderboard: one table per tier with every column explained on the page, and a chart
+  of the steady-state IQM with its 95 % CI per tier;
 * breakdowns over the drawn conditions: steady-state error vs latency and vs loss rate
   (one panel per tier, binned within the tier, IQM per bin);
 * one episode per policy on the replay tier: forces over time with the force limits, and
@@ -14,19 +14,32 @@ The page embeds plotly.js inline (no CDN, no server: open the file) and shows
 * an episode replay (play / slider): follower, true target and what the follower received,
   for a chosen policy and seed.
 
+Colours: one per policy, the same in every chart and beside its name in the table, fixed once
+from the leaderboard: families by hue (floors grey, classical controllers warm, learned
+policies cool, others magenta), the best of each family the most distinct. The charts draw the
+best few of each family on each tier (:data:`SHOWN_PER_FAMILY`) and the floors; the others are
+one click on the legend (or the "all policies" button) away.
+
 The page is built from the stored tables alone: the time plots and the replay come from the
 benchmark's ``traces.parquet`` (one episode per tier and policy, recorded when the benchmark
 ran). Building a report never loads a ``model.zip`` (an SB3 file can run code when loaded):
 where a folder has no trace of a policy, a scripted controller of this package is re-run by
 name (deterministic: same seed, same episode) and a learned policy is left out of the time
-plots, with a note. Every value read from the folder is escaped before it reaches the page.
+plots, with a note. Every value read from the folder is escaped before it reaches the page,
+only the folder's own files are read (a symbolic link out of the folder is refused), and every
+value the page uses is checked first: a malformed file is refused with a ValueError naming the
+file and the column.
 """
 
 from __future__ import annotations
 
 import html
 import json
+import math
+import os
+import tempfile
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,36 +48,333 @@ import numpy as np
 import pandas as pd
 
 from agents.benchmark import (
-    LEADERBOARD_METRICS,
     _controllers,
     load_result,
     resolve_tier,
     scores,
 )
+from agents.floors import CONTROL_FLOOR, INFORMATION_FLOOR, REFERENCE_KIND
 from auv_follow_env.layout import OBS_INDEX_V1
 
-__all__ = ["write_report", "rollout_episode", "binned_breakdown"]
+__all__ = ["write_report", "rollout_episode", "binned_breakdown", "SHOWN_PER_FAMILY"]
 
-_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22",
-           "#17becf")
+#: policies of each family drawn by default in the charts, per tier (the others: a legend click away)
+SHOWN_PER_FAMILY = 3
+
+# families by hue; within a family the colours are in the order they are handed out (the
+# policies drawn by default pick the most distinct of the free ones, see _policy_styles)
+_FAMILIES = ("floor", "classical", "learned", "other")
+_FAMILY_OF_KIND = {REFERENCE_KIND: "floor", "classical": "classical", "learned": "learned"}
+_FAMILY_NAMES = {"floor": "floors (grey)", "classical": "classical controllers (warm colours)",
+                 "learned": "learned policies (cool colours)", "other": "other policies (magenta)"}
+_PALETTES = {
+    "floor": ("#3d3d3d", "#8f8f8f", "#5f5f5f", "#b0b0b0"),
+    "classical": ("#d62728", "#ff7f0e", "#8c564b", "#e6ab02", "#7f2704", "#a6761d", "#fb9a99", "#c49c94",
+                  "#fdbf6f", "#67000d"),
+    "learned": ("#1f77b4", "#2ca02c", "#9467bd", "#17becf", "#08306b", "#005a32", "#54278f", "#00796b",
+                "#2b8cbe", "#41ab5d", "#807dba", "#4eb3d3", "#6baed6", "#74c476", "#bcbddc", "#a1d99b",
+                "#99d8c9", "#c6dbef", "#c7e9c0", "#9e9ac8", "#0868ac", "#238b45", "#3f007d", "#6a51a3"),
+    "other": ("#cc33cc", "#e7298a", "#7a0177", "#f768a1", "#ae017e"),
+}
+_HUES = {"floor": (0.0, 0.0), "classical": (0.0, 50.0), "learned": (95.0, 265.0), "other": (300.0, 340.0)}
+_TIME_COLUMNS = ("time", "follower_x", "follower_y", "target_x", "target_y", "recv_x", "recv_y", "F_u", "F_v",
+                 "F_r", "along_track", "cross_track")
+_OPTIONAL_TRACE_COLUMNS = ("own_ref_x", "own_ref_y", "est_x", "est_y", "packet_age")
+_DISTINCT = 150.0  # a default-drawn policy's colour differs at least this much from the others on its tiers
+_BIG = 1e100  # numbers of the leaderboard stay below this (their differences stay finite)
+_BIG_TRACE = 1e9  # a recorded episode's positions [m], forces [N] and times [s] stay below this
 
 
-_PALETTE: dict[str, str] = {}
+@dataclass(frozen=True)
+class _Style:
+    """How a policy is drawn in every chart of the page."""
+
+    color: str
+    family: str
+    rank: int  # legend order: families in _FAMILIES order, the best first
+    shown: bool  # drawn by default (among the best SHOWN_PER_FAMILY of its family on some tier)
+
+    @property
+    def dash(self) -> str:
+        return "dash" if self.family == "floor" else "solid"
+
+    @property
+    def group(self) -> str:
+        """The plotly legend group of the policy's traces (an id: no text from the folder)."""
+        return f"policy{self.rank}"
+
+    @property
+    def visible(self) -> bool | str:
+        return True if self.shown else "legendonly"
 
 
-def _color(policy: Any) -> str:
-    """The colour of a policy, the same in every figure of the page (set by :func:`write_report`
-    from the leaderboard's order; unknown labels get the next free colour)."""
-    key = str(policy)
-    if key not in _PALETTE:
-        _PALETTE[key] = _COLORS[len(_PALETTE) % len(_COLORS)]
-    return _PALETTE[key]
+def _rgb(color: str) -> tuple[int, int, int]:
+    return int(color[1:3], 16), int(color[3:5], 16), int(color[5:7], 16)
+
+
+def _distance(a: str, b: str) -> float:
+    """Perceptual-ish distance of two colours ("redmean" weighted RGB)."""
+    (r1, g1, b1), (r2, g2, b2) = _rgb(a), _rgb(b)
+    rm = (r1 + r2) / 2
+    return math.sqrt((2 + rm / 256) * (r1 - r2) ** 2 + 4 * (g1 - g2) ** 2 + (2 + (255 - rm) / 256) * (b1 - b2) ** 2)
+
+
+def _generated(family: str, k: int) -> str:
+    """The k-th colour of a family past its palette: hues spread over the family's range by the
+    golden ratio, lightness alternating (unique for every k)."""
+    import colorsys
+
+    h0, h1 = _HUES[family]
+    frac = (k * 0.6180339887) % 1.0
+    light = (0.35, 0.5, 0.65)[k % 3]
+    sat = 0.0 if family == "floor" else 0.65
+    r, g, b = colorsys.hls_to_rgb((h0 + (h1 - h0) * frac) / 360.0, light, sat)
+    color = f"#{round(r * 255):02x}{round(g * 255):02x}{round(b * 255):02x}"
+    return color
+
+
+def _policy_styles(board: pd.DataFrame, shown_per_family: int = SHOWN_PER_FAMILY) -> dict[str, _Style]:
+    """One style per policy label of the (validated) leaderboard, computed once for the page.
+
+    A policy's family comes from its kind (the first row's). Its rank within the family: its
+    best place on any tier (by steady-state IQM), then its mean log ratio to each tier's best.
+    It is drawn by default if that best place is among the first ``shown_per_family`` (floors:
+    the information floor). Colours are unique: the policies drawn by default, family by family
+    and best first, each take the first free colour of the family's palette (strong colours
+    first) that differs by :data:`_DISTINCT` from the colours of the default-drawn policies (of
+    any family) on its tiers, else the most different of the next few; the others take the
+    remaining colours in palette order."""
+    m = "true_steady_mean_iqm"
+    family = {}
+    for p, k in zip(board["policy"], board["kind"], strict=True):
+        family.setdefault(p, _FAMILY_OF_KIND.get(k, "other"))
+    place: dict[str, int] = {}
+    ratio: dict[str, list[float]] = {}
+    tiers_of: dict[str, set[str]] = {}
+    for tier, sub in board.groupby("tier", sort=False):
+        best = sub.loc[sub["kind"] != "reference", m]
+        best = float(best.min()) if best.notna().any() else float("nan")
+        sub = sub.assign(_v=sub[m].fillna(np.inf)).sort_values("_v", kind="stable")
+        counts: dict[str, int] = {}
+        for p, v in zip(sub["policy"], sub[m], strict=True):
+            f = family[p]
+            place[p] = min(place.get(p, 1 << 30), counts.get(f, 0))
+            counts[f] = counts.get(f, 0) + 1
+            ok = np.isfinite(v) and v > 0 and np.isfinite(best) and best > 0
+            ratio.setdefault(p, []).append(math.log(v / best) if ok else math.inf)
+            tiers_of.setdefault(p, set()).add(str(tier))
+    styles: dict[str, _Style] = {}
+    drawn: dict[str, str] = {}
+    for fi, f in enumerate(_FAMILIES):
+        members = sorted((p for p in family if family[p] == f),
+                         key=lambda p: (place[p], float(np.mean(ratio[p])) if ratio[p] else math.inf))
+        free = list(_PALETTES[f])
+        extra = 0
+        chosen: dict[str, str] = {}
+        # floors: the information floor (the control floor, one to three decades below everything, is a
+        # click away: drawn, it would squeeze the policies into a corner of every log axis)
+        shown = [p for p in members if (p != CONTROL_FLOOR if f == "floor" else place[p] < shown_per_family)]
+        for p in [*shown, *(q for q in members if q not in shown)]:
+            if not free:
+                while _generated(f, extra) in chosen.values():
+                    extra += 1
+                free.append(_generated(f, extra))
+                extra += 1
+            if p in shown:
+                near = [c for q, c in drawn.items() if tiers_of[q] & tiers_of[p]]
+                gap = [min((_distance(c, n) for n in near), default=math.inf) for c in free]
+                pick = next((c for c, g in zip(free, gap, strict=True) if g >= _DISTINCT), None)
+                if pick is None:
+                    pick = max(zip(free[:6], gap[:6], strict=False), key=lambda cg: cg[1])[0]
+            else:
+                pick = free[0]
+            free.remove(pick)
+            chosen[p] = pick
+            if p in shown:
+                drawn[p] = pick
+        for r, p in enumerate(members):
+            styles[p] = _Style(chosen[p], f, fi * 10_000 + r, p in shown)
+    return styles
 
 
 def _txt(value: Any) -> str:
     """A value as plotly text: plotly renders a subset of HTML in labels and titles (links
     among it), so ``&``, ``<`` and ``>`` are written as entities (shown as themselves)."""
     return str(value).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+
+
+# --- checking what the folder holds ----------------------------------------------------------
+
+_FILES = ("episodes.parquet", "leaderboard.csv", "benchmark.json", "traces.parquet")
+_BOARD_TEXT = ("tier", "policy", "kind")
+_BOARD_NUMBERS = tuple(f"{m}_{s}{b}" for m in ("true_steady_mean", "true_full_mean") for s in ("iqm", "mean")
+                       for b in ("", "_lo", "_hi")) + ("termination_rate",)
+_BOARD_COUNTS = ("runs", "episodes")
+_BOARD_OPTIONAL_NUMBERS = ("true_steady_mean_iqm_change_pct", "poi", "poi_lo", "poi_hi", "paired_diff",
+                           "paired_diff_lo", "paired_diff_hi", "paired_diff_base", "paired_diff_base_lo",
+                           "paired_diff_base_hi", "gap_closed")
+_BOARD_OPTIONAL_TEXT = ("best_classical", "base")
+
+
+def _inside(bench: Path) -> None:
+    """Refuse a file of the benchmark that is a symbolic link out of the folder (a report reads
+    only the folder's own files: a link could show any file of the machine on the page)."""
+    root = bench.resolve()
+    for name in _FILES:
+        p = bench / name
+        if not p.is_symlink():
+            continue
+        target = p.resolve()
+        if not target.is_relative_to(root):
+            raise ValueError(f"{p} is a symbolic link to {target}, outside {bench}: a report reads only the "
+                             f"folder's own files (copy the file into the folder instead)")
+
+
+def _too_deep(bench: Path) -> str:
+    """Which file of the folder nests its JSON too deeply for Python's parser."""
+    import pyarrow.parquet as pq
+
+    texts: list[tuple[str, Any]] = [("benchmark.json", lambda: (bench / "benchmark.json").read_text())]
+    texts.append(("leaderboard.csv", lambda: (bench / "leaderboard.csv").open().readline()[len("# provenance: "):]))
+    for name in ("episodes.parquet", "traces.parquet"):
+        texts.append((name, lambda n=name: (pq.read_schema(bench / n).metadata or {})
+                      .get(b"auv_follow_provenance", b"null")))
+    for name, read in texts:
+        try:
+            json.loads(read())
+        except RecursionError:
+            return name
+        except Exception:  # noqa: BLE001 (only the nesting is asked here; load_result names other faults)
+            continue
+    return "benchmark.json"
+
+
+def _row_text(df: pd.DataFrame, i: int) -> str:
+    r = df.iloc[i]
+    who = [f"{c} {str(r[c])[:60]!r}" for c in ("tier", "policy") if c in df]
+    return f"row {i + 1}" + (f" ({', '.join(who)})" if who else "")
+
+
+def _numbers(df: pd.DataFrame, col: str, where: str, *, bound: float = _BIG, finite: bool = False,
+             whole: bool = False, nonneg: bool = False) -> pd.Series:
+    """``df[col]`` as float64, refusing (ValueError naming ``where`` and the column) text, booleans,
+    infinities, magnitudes of ``bound`` or more, NaN where ``finite``, fractions where ``whole``
+    and negative values where ``nonneg``."""
+    s = df[col]
+    if pd.api.types.is_bool_dtype(s):
+        raise ValueError(f"{where} column {col!r} holds booleans: numbers expected")
+    v = pd.to_numeric(s, errors="coerce")
+    if not pd.api.types.is_numeric_dtype(v) or pd.api.types.is_bool_dtype(v):
+        raise ValueError(f"{where} column {col!r} is not numeric: numbers expected")
+    v = v.astype(np.float64)
+    text = v.isna() & s.notna()
+    problems = [(text, "is not a number"), (~np.isfinite(v) & v.notna(), "is infinite"),
+                (np.isfinite(v) & (v.abs() >= bound), f"is not below {bound:g} in magnitude")]
+    if finite:
+        problems.append((v.isna(), "is missing (NaN)"))
+    if whole:
+        problems.append((np.isfinite(v) & (v != np.floor(v)), "is not a whole number"))
+    if nonneg:
+        problems.append((v < 0, "is negative"))
+    for bad, what in problems:
+        if bad.any():
+            i = int(np.flatnonzero(bad.to_numpy())[0])
+            raise ValueError(f"{where} column {col!r} {what}: {str(s.iloc[i])[:60]!r} in {_row_text(df, i)}"
+                             + (f" ({int(bad.sum())} rows in all)" if bad.sum() > 1 else ""))
+    return v
+
+
+def _texts(df: pd.DataFrame, col: str, where: str, *, required: bool = True) -> pd.Series:
+    """``df[col]`` as text; a missing value is refused where ``required`` (else ``None``)."""
+    s = df[col]
+    miss = s.isna()
+    if required and miss.any():
+        i = int(np.flatnonzero(miss.to_numpy())[0])
+        raise ValueError(f"{where} column {col!r} is empty in row {i + 1}: every row needs a {col}")
+    return s.map(lambda x: None if pd.isna(x) else str(x)).astype(object)
+
+
+def _seeds(df: pd.DataFrame, where: str) -> pd.Series:
+    return _numbers(df, "seed", where, bound=2.0 ** 63, finite=True, whole=True, nonneg=True).astype(np.int64)
+
+
+def _checked_board(board: pd.DataFrame, where: str) -> pd.DataFrame:
+    """The leaderboard with every column the page uses checked and typed."""
+    need = [c for c in (*_BOARD_TEXT, *_BOARD_COUNTS, *_BOARD_NUMBERS) if c not in board]
+    if need:
+        raise ValueError(f"{where} lacks columns {need} (the report shows them): write the folder again with "
+                         f"`auv-follow benchmark`")
+    out = pd.DataFrame(index=board.index)
+    for c in _BOARD_TEXT:
+        out[c] = _texts(board, c, where)
+    for c in _BOARD_COUNTS:
+        out[c] = _numbers(board, c, where, finite=True, whole=True, nonneg=True).astype(np.int64)
+    for c in _BOARD_NUMBERS:  # errors [m] and a rate: never negative (and the charts' axes are logarithmic)
+        out[c] = _numbers(board, c, where, nonneg=True)
+    for c in _BOARD_OPTIONAL_NUMBERS:
+        out[c] = _numbers(board, c, where) if c in board else np.nan
+    for c in _BOARD_OPTIONAL_TEXT:
+        out[c] = _texts(board, c, where, required=False) if c in board else None
+    out = out.reset_index(drop=True)
+    dup = out.duplicated(["tier", "policy"])
+    if dup.any():
+        i = int(np.flatnonzero(dup.to_numpy())[0])
+        raise ValueError(f"{where} has two rows for policy {out.loc[i, 'policy']!r} on tier {out.loc[i, 'tier']!r}")
+    return out
+
+
+def _checked_episodes(episodes: pd.DataFrame, where: str) -> pd.DataFrame:
+    """The per-episode table with the columns the page uses checked and typed."""
+    need = [c for c in ("tier", "policy", "seed", "terminated", "true_steady_mean") if c not in episodes]
+    if need:
+        raise ValueError(f"{where} lacks columns {need} (the breakdowns use them)")
+    ep = episodes.copy()
+    for c in ("tier", "policy"):
+        ep[c] = _texts(episodes, c, where)
+    ep["seed"] = _seeds(episodes, where)
+    t = episodes["terminated"]
+    if not pd.api.types.is_bool_dtype(t):
+        def flag(x: Any) -> bool:
+            return isinstance(x, (bool, np.bool_)) or (isinstance(x, (int, float, np.number)) and x in (0, 1))
+
+        bad = ~t.map(flag).astype(bool)
+        if bad.any():
+            i = int(np.flatnonzero(bad.to_numpy())[0])
+            raise ValueError(f"{where} column 'terminated' is not true/false (or 1/0): {str(t.iloc[i])[:60]!r} in "
+                             f"{_row_text(episodes, i)}")
+        ep["terminated"] = t.astype(bool)
+    for c in ("true_steady_mean", "fail_error_m", "cond_latency_s", "cond_loss_prob"):
+        if c in episodes:  # (errors, latencies and probabilities are never negative)
+            ep[c] = _numbers(episodes, c, where, bound=_BIG_TRACE, nonneg=True)
+    return ep
+
+
+def _checked_traces(traces: pd.DataFrame | None, where: str) -> pd.DataFrame | None:
+    """The recorded episodes with their keys checked (their values are checked per episode, when used)."""
+    if traces is None or traces.empty:
+        return None
+    if not {"tier", "policy", "seed"} <= set(traces.columns):
+        raise ValueError(f"{where} lacks columns {sorted({'tier', 'policy', 'seed'} - set(traces.columns))}")
+    tr = traces.copy()
+    for c in ("tier", "policy"):
+        tr[c] = _texts(traces, c, where)
+    tr["seed"] = _seeds(traces, where)
+    return tr
+
+
+def _checked_policies(prov: dict, where: str) -> dict[str, str | None]:
+    """``{label: scripted controller name}`` of benchmark.json's ``config.policies``."""
+    pols = prov["config"].get("policies", [])
+    if pols is None:
+        return {}
+    if not isinstance(pols, list):
+        raise ValueError(f"{where} config.policies is a {type(pols).__name__}: a list of policies expected")
+    out: dict[str, str | None] = {}
+    for p in pols:
+        if isinstance(p, dict) and p.get("label") is not None:
+            ctrl = p.get("controller")
+            out[str(p["label"])] = ctrl if isinstance(ctrl, str) else None
+    return out
 
 
 def rollout_episode(policy: Any, env_id: str, seed: int) -> pd.DataFrame:
@@ -121,133 +431,205 @@ def rollout_episode(policy: Any, env_id: str, seed: int) -> pd.DataFrame:
 def binned_breakdown(episodes: pd.DataFrame, condition: str, metric: str = "true_steady_mean",
                      bins: int = 6) -> pd.DataFrame:
     """IQM of ``metric`` per policy in equal-width bins of a drawn condition (pooled over the
-    tiers in ``episodes``): columns policy, bin_center, iqm, episodes."""
+    tiers in ``episodes``): columns policy, bin_center, iqm, episodes. Episodes without a value
+    of the condition (NaN) are left out.
+
+    Raises:
+        ValueError: ``condition`` is not a column, or not finite numbers; ``bins`` is not a
+            positive whole number.
+    """
     from agents.benchmark import iqm
 
     if condition not in episodes:
         raise ValueError(f"condition={condition!r} is not a column: valid conditions are "
-                         f"{[c for c in episodes.columns if c.startswith('cond_')]}")
-    ep = episodes.assign(_score=scores(episodes, metric))
-    v = ep[condition].astype(float)
-    lo, hi = float(v.min()), float(v.max())
-    edges = np.linspace(lo, hi if hi > lo else lo + 1e-9, bins + 1)
-    ep["_bin"] = np.clip(np.digitize(v, edges[1:-1]), 0, bins - 1)
+                         f"{[c for c in episodes.columns if str(c).startswith('cond_')]}")
+    if isinstance(bins, bool) or not isinstance(bins, (int, np.integer)) or bins < 1:
+        raise ValueError(f"bins={bins!r} is invalid: must be a whole number >= 1")
+    v = _numbers(episodes, condition, f"condition={condition!r}:", bound=_BIG_TRACE)
+    ep = episodes.assign(_score=scores(episodes, metric))[v.notna().to_numpy()]
+    v = v[v.notna()]
     out = []
-    for (pol, b), d in ep.groupby(["policy", "_bin"], sort=False):
-        out.append({"policy": pol, "bin_center": 0.5 * (edges[b] + edges[b + 1]), "iqm": float(iqm(d["_score"])),
-                    "episodes": len(d)})
+    if len(v):
+        lo, hi = float(v.min()), float(v.max())
+        edges = np.linspace(lo, hi if hi > lo else lo + 1e-9, bins + 1)
+        ep["_bin"] = np.clip(np.digitize(v, edges[1:-1]), 0, bins - 1)
+        for (pol, b), d in ep.groupby(["policy", "_bin"], sort=False):
+            out.append({"policy": pol, "bin_center": 0.5 * (edges[b] + edges[b + 1]),
+                        "iqm": float(iqm(d["_score"])), "episodes": len(d)})
+    if not out:
+        return pd.DataFrame(columns=["policy", "bin_center", "iqm", "episodes"])
     return pd.DataFrame(out).sort_values(["policy", "bin_center"]).reset_index(drop=True)
 
 
 # --- figures -----------------------------------------------------------------------------
 
-def _fig_leaderboard(board: pd.DataFrame):
+def _legend(n: int, columns: int = 3) -> tuple[dict, int]:
+    """A legend under the plot in ``columns`` columns (long labels fit) and the height it takes."""
+    rows = math.ceil(n / columns)
+    return ({"orientation": "h", "yanchor": "top", "y": -0.08, "x": 0.0, "xanchor": "left",
+             "entrywidth": 1.0 / columns, "entrywidthmode": "fraction", "font": {"size": 11},
+             "traceorder": "normal"}, 22 * rows + 30)
+
+
+def _buttons(visible: list, lift: float) -> list[dict]:
+    """'best few' / 'all policies' buttons at the top left, ``lift`` (of the plot height) above the
+    plot (they restyle every trace)."""
+    return [{"type": "buttons", "direction": "left", "showactive": True, "x": 0.0, "xanchor": "left",
+             "y": 1.0 + lift, "yanchor": "bottom", "pad": {"t": 0, "l": 0}, "font": {"size": 11}, "buttons": [
+                 {"label": f"best {SHOWN_PER_FAMILY} of each family", "method": "restyle",
+                  "args": [{"visible": visible}]},
+                 {"label": "all policies", "method": "restyle", "args": [{"visible": [True] * len(visible)}]}]}]
+
+
+def _fig_leaderboard(board: pd.DataFrame, styles: dict[str, _Style]):
+    """One panel per tier, stacked (the labels need the width): one dot per policy at its IQM,
+    in its colour, with its 95 % CI; the policies not drawn by default are a legend click away
+    (a hidden policy's row closes up)."""
     import plotly.graph_objects as go
     from plotly.subplots import make_subplots
 
     tiers = list(dict.fromkeys(board["tier"]))
     m = "true_steady_mean"
-    fig = make_subplots(rows=1, cols=len(tiers), subplot_titles=[_txt(t) for t in tiers], horizontal_spacing=0.08)
+    sizes = [int((board["tier"] == t).sum()) for t in tiers]
+    fig = make_subplots(rows=len(tiers), cols=1, subplot_titles=[_txt(t) for t in tiers], row_heights=sizes,
+                        vertical_spacing=min(0.3 / len(tiers), 0.07))
+    seen: set[str] = set()
     for k, tier in enumerate(tiers, start=1):
-        sub = board[board["tier"] == tier].sort_values(f"{m}_iqm", ascending=False)
-        fig.add_trace(go.Bar(
-            x=sub[f"{m}_iqm"], y=[_txt(p) for p in sub["policy"]], orientation="h", showlegend=False,
-            marker_color=["#ff7f0e" if kd == "classical" else "#999999" if kd == "reference" else "#1f77b4"
-                          for kd in sub["kind"]],
-            error_x={"type": "data", "symmetric": False, "array": sub[f"{m}_iqm_hi"] - sub[f"{m}_iqm"],
-                     "arrayminus": sub[f"{m}_iqm"] - sub[f"{m}_iqm_lo"]},
-            hovertemplate="%{y}: %{x:.4f} m<extra></extra>"), row=1, col=k)
-        fig.update_xaxes(type="log", title_text="IQM steady error [m]", row=1, col=k)
-    fig.update_layout(height=120 + 28 * board.groupby("tier").size().max(), margin={"l": 10, "r": 10, "t": 40},
-                      title="Steady-state true-reference error: IQM and 95 % CI (orange classical, blue learned"
-                            + (", grey floors)" if (board["kind"] == "reference").any() else ")"))
+        sub = board[board["tier"] == tier].assign(_v=lambda d: d[f"{m}_iqm"].fillna(np.inf))
+        for _, r in sub.sort_values("_v", ascending=False, kind="stable").iterrows():
+            p = r["policy"]
+            st = styles[p]
+            fig.add_trace(go.Scatter(
+                x=[r[f"{m}_iqm"]], y=[_txt(p)], mode="markers", name=_txt(p), legendgroup=st.group,
+                showlegend=p not in seen, legendrank=st.rank, visible=st.visible,
+                marker={"color": st.color, "size": 11, "symbol": "diamond" if st.family == "floor" else "circle",
+                        "line": {"color": "#222", "width": 0.5}},
+                error_x={"type": "data", "symmetric": False, "array": [r[f"{m}_iqm_hi"] - r[f"{m}_iqm"]],
+                         "arrayminus": [r[f"{m}_iqm"] - r[f"{m}_iqm_lo"]], "color": st.color, "thickness": 2,
+                         "width": 5},
+                customdata=[[r[f"{m}_iqm_lo"], r[f"{m}_iqm_hi"]]],
+                hovertemplate=f"{_txt(tier)}: %{{y}}<br>IQM %{{x:.4f}} m [%{{customdata[0]:.4f}}, "
+                              f"%{{customdata[1]:.4f}}]<extra></extra>"), row=k, col=1)
+            seen.add(p)
+        fig.update_xaxes(type="log", row=k, col=1)
+        fig.update_yaxes(automargin=True, tickfont={"size": 11}, row=k, col=1)
+    fig.update_xaxes(title_text="IQM of the steady-state error [m] (log scale)", row=len(tiers), col=1)
+    legend, extra = _legend(len(seen), columns=2)
+    plot = 60 * len(tiers) + 19 * sum(sizes)
+    legend["y"] = -60 / plot
+    fig.update_layout(height=plot + extra + 110, legend=legend, margin={"l": 10, "r": 10, "t": 70, "b": extra + 40},
+                      updatemenus=_buttons([tr.visible for tr in fig.data], 45 / plot))
     return fig
 
 
-def _fig_breakdown(episodes: pd.DataFrame, condition: str, label: str):
+def _fig_breakdown(episodes: pd.DataFrame, condition: str, label: str, styles: dict[str, _Style]):
     """One panel per tier: the condition is binned within the tier (pooling tiers would plot
     the tier, not the condition)."""
     import plotly.graph_objects as go
     from plotly.subplots import make_subplots
 
     tiers = [str(t) for t in dict.fromkeys(episodes["tier"])] if "tier" in episodes else [""]
-    fig = make_subplots(rows=1, cols=len(tiers), subplot_titles=[_txt(t) for t in tiers], horizontal_spacing=0.06)
-    shown: set[str] = set()
+    fig = make_subplots(rows=1, cols=len(tiers), subplot_titles=[_txt(t) for t in tiers], horizontal_spacing=0.05)
+    seen: set[str] = set()
     for c, tier in enumerate(tiers, start=1):
         ep = episodes[episodes["tier"].astype(str) == tier] if tier else episodes
-        if condition not in ep or ep[condition].nunique() == 0:
+        ep = ep[ep["policy"].isin(list(styles))]
+        if condition not in ep or ep[condition].notna().sum() == 0:
             continue
         bd = binned_breakdown(ep, condition)
-        for pol, d in bd.groupby("policy", sort=False):
+        groups = sorted(bd.groupby("policy", sort=False), key=lambda g: styles[g[0]].rank)
+        for pol, d in groups:
+            st = styles[pol]
             fig.add_trace(go.Scatter(x=d["bin_center"], y=d["iqm"], mode="lines+markers", name=_txt(pol),
-                                     legendgroup=str(pol), showlegend=str(pol) not in shown,
-                                     line={"color": _color(pol)}, customdata=d["episodes"],
-                                     hovertemplate="%{x:.3g}: %{y:.4f} m (%{customdata} episodes)<extra></extra>"),
-                          row=1, col=c)
-            shown.add(str(pol))
+                                     legendgroup=st.group, showlegend=pol not in seen, legendrank=st.rank,
+                                     visible=st.visible,
+                                     line={"color": st.color, "dash": st.dash, "width": 2},
+                                     marker={"size": 6}, customdata=d["episodes"],
+                                     hovertemplate=f"{_txt(pol)}<br>%{{x:.3g}}: %{{y:.4f}} m "
+                                                   f"(%{{customdata}} episodes)<extra></extra>"), row=1, col=c)
+            seen.add(pol)
         fig.update_xaxes(title_text=_txt(label), row=1, col=c)
         fig.update_yaxes(type="log", row=1, col=c)
-    fig.update_yaxes(title_text="IQM steady error [m]", row=1, col=1)
-    fig.update_layout(title=f"Steady-state error vs {_txt(label)} (6 equal-width bins within each tier, IQM per bin)",
-                      height=400)
+    fig.update_yaxes(title_text="IQM of the steady-state error [m]", row=1, col=1)
+    legend, extra = _legend(len(seen), columns=2)
+    legend["y"] = -90 / 330
+    fig.update_layout(height=330 + 150 + extra, legend=legend, margin={"l": 10, "r": 10, "t": 80, "b": extra + 70},
+                      updatemenus=_buttons([tr.visible for tr in fig.data], 50 / 330))
     return fig
 
 
-def _fig_forces(runs: dict[str, pd.DataFrame]):
+def _fig_forces(runs: dict[str, pd.DataFrame], styles: dict[str, _Style], shown: Sequence[str]):
     import plotly.graph_objects as go
     from plotly.subplots import make_subplots
 
     names = [("F_u", "N"), ("F_v", "N"), ("F_r", "N m")]
-    fig = make_subplots(rows=3, cols=1, shared_xaxes=True, subplot_titles=[n for n, _ in names])
+    fig = make_subplots(rows=3, cols=1, shared_xaxes=True, subplot_titles=[n for n, _ in names],
+                        vertical_spacing=0.07)
     limits = next(iter(runs.values())).attrs.get("force_limits", (np.nan,) * 3)
-    for k, (pol, df) in enumerate(runs.items()):
+    for pol, df in runs.items():
         for j, (n, _) in enumerate(names, start=1):
-            fig.add_trace(go.Scatter(x=df["time"], y=df[n], name=_txt(pol), legendgroup=str(k), showlegend=j == 1,
-                                     line={"color": _color(pol), "width": 1}), row=j, col=1)
+            fig.add_trace(go.Scatter(x=df["time"], y=df[n], name=_txt(pol), legendgroup=styles[pol].group,
+                                     showlegend=j == 1, legendrank=styles[pol].rank,
+                                     visible=True if pol in shown else "legendonly",
+                                     line={"color": styles[pol].color, "width": 1.3},
+                                     hovertemplate=f"{_txt(pol)}<br>t %{{x:.2f}} s: %{{y:.1f}}<extra></extra>"),
+                          row=j, col=1)
     for j, ((n, unit), lim) in enumerate(zip(names, limits, strict=True), start=1):
         for sgn in (1, -1):
-            fig.add_hline(y=sgn * lim, line_dash="dash", line_color="black", row=j, col=1)
+            fig.add_hline(y=sgn * lim, line_dash="dot", line_color="black", line_width=1, row=j, col=1)
         fig.update_yaxes(title_text=f"{n} [{unit}]", row=j, col=1)
     fig.update_xaxes(title_text="time [s]", row=3, col=1)
-    fig.update_layout(title="Forces over time (dashed: force limits)", height=620)
+    legend, extra = _legend(len(runs))
+    legend["y"] = -0.1
+    fig.update_layout(height=640 + extra, legend=legend, margin={"l": 10, "r": 10, "t": 40, "b": extra + 30})
     return fig
 
 
-def _fig_track(runs: dict[str, pd.DataFrame]):
+def _fig_track(runs: dict[str, pd.DataFrame], styles: dict[str, _Style], shown: Sequence[str]):
     import plotly.graph_objects as go
     from plotly.subplots import make_subplots
 
-    fig = make_subplots(rows=2, cols=1, shared_xaxes=True, subplot_titles=["along-track", "cross-track"])
-    for k, (pol, df) in enumerate(runs.items()):
+    fig = make_subplots(rows=2, cols=1, shared_xaxes=True, subplot_titles=["along-track", "cross-track"],
+                        vertical_spacing=0.1)
+    for pol, df in runs.items():
         for j, col in enumerate(("along_track", "cross_track"), start=1):
-            fig.add_trace(go.Scatter(x=df["time"], y=df[col], name=_txt(pol), legendgroup=str(k), showlegend=j == 1,
-                                     line={"color": _color(pol), "width": 1}), row=j, col=1)
+            fig.add_trace(go.Scatter(x=df["time"], y=df[col], name=_txt(pol), legendgroup=styles[pol].group,
+                                     showlegend=j == 1, legendrank=styles[pol].rank,
+                                     visible=True if pol in shown else "legendonly",
+                                     line={"color": styles[pol].color, "width": 1.3},
+                                     hovertemplate=f"{_txt(pol)}<br>t %{{x:.2f}} s: %{{y:.3f}} m<extra></extra>"),
+                          row=j, col=1)
     fig.update_yaxes(title_text="along [m] (+: ahead)", row=1, col=1)
     fig.update_yaxes(title_text="cross [m] (+: to port)", row=2, col=1)
     fig.update_xaxes(title_text="time [s]", row=2, col=1)
-    fig.update_layout(title="Error from the true reference in the target's heading frame", height=520)
+    legend, extra = _legend(len(runs))
+    legend["y"] = -0.14
+    fig.update_layout(height=520 + extra, legend=legend, margin={"l": 10, "r": 10, "t": 40, "b": extra + 30})
     return fig
 
 
-def _fig_targets(df: pd.DataFrame, title: str):
+def _fig_targets(df: pd.DataFrame, label: str, color: str):
     import plotly.graph_objects as go
 
     fig = go.Figure()
     fig.add_trace(go.Scatter(x=df["target_x"], y=df["target_y"], mode="lines", name="true target",
-                             line={"color": "black"}))
+                             line={"color": "black", "width": 2}))
     fig.add_trace(go.Scatter(x=df["recv_x"], y=df["recv_y"], mode="markers", name="received (delayed) target",
-                             marker={"size": 3, "color": "#d62728"}))
+                             marker={"size": 5, "color": "#7f7f7f", "symbol": "x-thin", "line": {"width": 1.5,
+                                                                                              "color": "#555"}}))
     if "est_x" in df:
-        fig.add_trace(go.Scatter(x=df["est_x"], y=df["est_y"], mode="lines", name="estimated target",
-                                 line={"color": "#2ca02c", "dash": "dot"}))
-    fig.add_trace(go.Scatter(x=df["follower_x"], y=df["follower_y"], mode="lines", name="follower",
-                             line={"color": "#1f77b4", "width": 1}))
-    fig.update_layout(title=_txt(title), xaxis_title="x [m]", yaxis_title="y [m]", height=520,
-                      yaxis={"scaleanchor": "x", "scaleratio": 1})
+        fig.add_trace(go.Scatter(x=df["est_x"], y=df["est_y"], mode="lines", name=f"estimated target ({_txt(label)})",
+                                 line={"color": color, "dash": "dot", "width": 2}))
+    fig.add_trace(go.Scatter(x=df["follower_x"], y=df["follower_y"], mode="lines", name=f"follower ({_txt(label)})",
+                             line={"color": color, "width": 1.5}))
+    fig.update_layout(xaxis={"title": "x [m]", "constrain": "domain"}, yaxis_title="y [m]", height=620,
+                      yaxis={"scaleanchor": "x", "scaleratio": 1},
+                      legend={"orientation": "h", "yanchor": "bottom", "y": 1.02, "x": 0.0},
+                      margin={"l": 10, "r": 10, "t": 40})
     return fig
 
 
-def _fig_replay(df: pd.DataFrame, title: str, every: int = 10, trail_s: float = 20.0):
+def _fig_replay(df: pd.DataFrame, color: str, every: int = 10, trail_s: float = 20.0):
     import plotly.graph_objects as go
 
     idx = list(range(0, len(df), every)) + ([len(df) - 1] if (len(df) - 1) % every else [])
@@ -257,25 +639,28 @@ def _fig_replay(df: pd.DataFrame, title: str, every: int = 10, trail_s: float = 
     def moving(k: int) -> list:
         d = df.iloc[max(0, k - trail): k + 1]
         last = df.iloc[k]
-        return [go.Scatter(x=d["recv_x"], y=d["recv_y"], mode="markers", marker={"size": 3, "color": "#d62728"},
+        return [go.Scatter(x=d["recv_x"], y=d["recv_y"], mode="markers",
+                           marker={"size": 5, "color": "#555", "symbol": "x-thin", "line": {"width": 1.5,
+                                                                                         "color": "#555"}},
                            name=f"received target (last {trail_s:g} s)"),
                 go.Scatter(x=[last["target_x"], last["follower_x"], last["recv_x"]],
                            y=[last["target_y"], last["follower_y"], last["recv_y"]], mode="markers",
-                           marker={"size": [12, 12, 10], "color": ["black", "#1f77b4", "#d62728"],
+                           marker={"size": [13, 13, 11], "color": ["black", color, "#555"],
                                    "symbol": ["triangle-up", "circle", "x"]},
                            name="now: true target / follower / received")]
 
     static = [go.Scatter(x=df["target_x"], y=df["target_y"], mode="lines", line={"color": "#bbbbbb"},
                          name="true target path"),
-              go.Scatter(x=df["follower_x"], y=df["follower_y"], mode="lines", line={"color": "#9ecae1"},
-                         name="follower path")]
+              go.Scatter(x=df["follower_x"], y=df["follower_y"], mode="lines", line={"color": color, "width": 1},
+                         opacity=0.45, name="follower path")]
     frames = [go.Frame(data=moving(k), traces=[2, 3], name=f"{df['time'].iloc[k]:.1f}") for k in idx]
     fig = go.Figure(data=static + moving(idx[0]), frames=frames)
     steps = [{"args": [[f.name], {"frame": {"duration": 0, "redraw": True}, "mode": "immediate"}],
               "label": f.name, "method": "animate"} for f in frames]
     fig.update_layout(
-        title=_txt(title), height=620, xaxis={"title": "x [m]"},
+        height=660, xaxis={"title": "x [m]", "constrain": "domain"}, margin={"l": 10, "r": 10, "t": 40},
         yaxis={"title": "y [m]", "scaleanchor": "x", "scaleratio": 1},
+        legend={"orientation": "h", "yanchor": "bottom", "y": 1.02, "x": 0.0},
         updatemenus=[{"type": "buttons", "showactive": False, "x": 0.0, "y": -0.12, "buttons": [
             {"label": "play", "method": "animate",
              "args": [None, {"frame": {"duration": 50, "redraw": True}, "fromcurrent": True}]},
@@ -290,54 +675,139 @@ def _fig_replay(df: pd.DataFrame, title: str, every: int = 10, trail_s: float = 
 
 # --- page ----------------------------------------------------------------------------------
 
-def _table_html(board: pd.DataFrame) -> str:
-    m0 = LEADERBOARD_METRICS[0]
-    parts = []
+def _columns_html(board: pd.DataFrame, gap: bool, has_base: bool) -> str:
+    """What each column of the leaderboard tables means (shown above them)."""
+    items = [
+        ("policy", "a scripted controller, or a learned method (its training runs pooled). The square beside it "
+                   "is its colour in every chart of this page. Bold row (shaded): the tier's best classical "
+                   "baseline, the scripted controller with the lowest steady-state IQM; grey italics: the floors, "
+                   "reference rows that are not policies."),
+        ("kind", "classical (a scripted controller of this package), learned (trained agents), external (a "
+                 "controller given as module:Class) or reference (a floor)."),
+        ("runs x episodes", "training runs pooled x test episodes per run (one per test seed of the tier)."),
+        ("steady IQM [m] [95 % CI]", "the score of an episode is its true-reference tracking error, the mean "
+                                     "distance of the follower from where it should be, over the steady-state "
+                                     "window t >= 10 s (an episode that lost the target scores the loss "
+                                     "threshold). IQM: the interquartile mean over the episodes (mean of the "
+                                     "middle 50 %, robust to a few bad episodes), with its 95 % stratified-"
+                                     "bootstrap confidence interval (strata: training runs). Lower is better; "
+                                     "the rows are sorted by it."),
+        ("steady mean [m] [95 % CI]", "the plain mean of the same per-episode scores (sensitive to bad episodes)."),
+        ("full IQM [m] [95 % CI]", "the IQM over the whole episode, including the start, where every follower "
+                                   "first closes its initial offset."),
+        ("full mean [m] [95 % CI]", "the mean over the whole episode."),
+        ("IQM vs best classical [%]", "steady IQM / the best classical's steady IQM - 1, in percent: negative is "
+                                      "better than the best classical."),
+        ("paired diff vs best classical [m] [95 % CI]", "the mean over the test seeds of (this policy's steady-"
+                                                        "state error - the best classical's on the same seed), a "
+                                                        "method's runs averaged per seed, with a 95 % bootstrap CI "
+                                                        "over seeds: negative is better, and a CI that excludes 0 "
+                                                        "is a difference beyond chance."),
+    ]
+    if has_base:
+        items.append(("paired diff vs its base [m] [95 % CI]", "for a residual agent (a learned correction on top "
+                                                               "of a scripted controller): the same paired "
+                                                               "difference against its own base controller."))
+    items += [
+        ("P(better) [95 % CI]", "the probability that an episode of this policy has a lower steady-state error "
+                                "than an episode of the best classical (rliable's probability of improvement, "
+                                "unpaired; ties count half): 0.5 is no difference."),
+        ("terminated [%]", "the share of episodes that ended early because the follower lost the target."),
+    ]
+    if gap:
+        ref = board[board["policy"] == INFORMATION_FLOOR]
+        example = ""
+        rows = []
+        for tier, sub in board.groupby("tier", sort=False):
+            floor = sub.loc[sub["policy"] == INFORMATION_FLOOR, "true_steady_mean_iqm"]
+            best = sub.loc[sub["gap_closed"] == 0.0, "true_steady_mean_iqm"]
+            worst = sub["gap_closed"].min()
+            if len(floor) and len(best) and np.isfinite(worst):
+                rows.append((float(best.iloc[0]) - float(floor.iloc[0]), str(tier), float(best.iloc[0]),
+                             float(floor.iloc[0]), float(worst)))
+        if len(ref) and rows:
+            g, tier, b, f, worst = min(rows)
+            example = (f" On {html.escape(tier)} the best classical ({b:.4f} m) is only {g:.4f} m above the "
+                       f"information floor ({f:.4f} m), so a policy d metres worse than the best classical gets "
+                       f"-d / {g:.4f}: the lowest value there is {worst:.2f}.")
+        items.append(("gap closed [-]", "(best classical IQM - this IQM) / (best classical IQM - information "
+                                        "floor IQM): how much of the gap between the best classical baseline "
+                                        "and the information floor (the error of an ideal estimate from the "
+                                        "packets received, which no follower can beat) a policy closes. 0 is "
+                                        "the best classical, 1 reaches the floor. It is measured in units of "
+                                        "that gap, so where the gap is small a policy that is worse than the "
+                                        "best classical gets a very negative value: it says how many gaps "
+                                        "worse it is, not that anything is broken." + example +
+                                        " It can exceed 1 slightly: the floor is an expectation per episode "
+                                        "while a policy's scores are realisations that scatter about theirs."))
+    return ("<dl class='columns'>" + "".join(f"<dt>{html.escape(k)}</dt><dd>{v}</dd>" for k, v in items)
+            + "</dl>")
+
+
+def _table_html(board: pd.DataFrame, styles: dict[str, _Style]) -> str:
+    m0 = "true_steady_mean"
+    has_base = board["base"].notna().any()
+    gap = board["gap_closed"].notna().any()  # floors present (agents/floors.py)
+    parts = [_columns_html(board, gap, has_base)]
     for tier, sub in board.groupby("tier", sort=False):
         best = sub["best_classical"].iloc[0]
         parts.append(f"<h3>{html.escape(str(tier))}" + (f" (best classical: {html.escape(str(best))})" if
                                                         isinstance(best, str) else "") + "</h3>")
         head = ["policy", "kind", "runs x episodes", "steady IQM [m] [95 % CI]", "steady mean [m] [95 % CI]",
                 "full IQM [m] [95 % CI]", "full mean [m] [95 % CI]", "IQM vs best classical [%]",
-                "paired diff vs best classical [m] [95 % CI]", "P(better) [95 % CI]", "terminated [%]"]
-        gap = "gap_closed" in sub and sub["gap_closed"].notna().any()  # floors present (agents/floors.py)
+                "paired diff vs best classical [m] [95 % CI]"]
+        head += ["paired diff vs its base [m] [95 % CI]"] if has_base else []
+        head += ["P(better) [95 % CI]", "terminated [%]"]
         head += ["gap closed [-]"] if gap else []
         parts.append("<table class='leaderboard' data-tier='" + html.escape(str(tier)) + "'><thead><tr>" +
                      "".join(f"<th>{h}</th>" for h in head) + "</tr></thead><tbody>")
-        for _, r in sub.sort_values(f"{m0}_iqm").iterrows():
+        sub = sub.assign(_v=sub[f"{m0}_iqm"].fillna(np.inf)).sort_values("_v", kind="stable")
+        for _, r in sub.iterrows():
             def ci(m: str, stat: str, row: pd.Series = r) -> str:
-                return f"{row[f'{m}_{stat}']:.4f} [{row[f'{m}_{stat}_lo']:.4f}, {row[f'{m}_{stat}_hi']:.4f}]"
+                v, lo, hi = row[f"{m}_{stat}"], row[f"{m}_{stat}_lo"], row[f"{m}_{stat}_hi"]
+                return "-" if not np.isfinite(v) else f"{v:.4f} [{lo:.4f}, {hi:.4f}]"
 
-            chg = r.get(f"{m0}_iqm_change_pct")
-            cells = [r["policy"], r["kind"], f"{r['runs']} x {r['episodes'] // max(int(r['runs']), 1)}",
-                     ci("true_steady_mean", "iqm"), ci("true_steady_mean", "mean"), ci("true_full_mean", "iqm"),
-                     ci("true_full_mean", "mean"),
-                     "-" if chg is None or not np.isfinite(chg) else f"{chg:+.1f} %",
-                     "-" if r["policy"] == best or not np.isfinite(r.get("paired_diff", np.nan)) else
-                     f"{r['paired_diff']:+.4f} [{r['paired_diff_lo']:+.4f}, {r['paired_diff_hi']:+.4f}]",
-                     "-" if not np.isfinite(r["poi"]) else f"{r['poi']:.2f} [{r['poi_lo']:.2f}, {r['poi_hi']:.2f}]",
-                     f"{100 * r['termination_rate']:.0f} %"]
+            def signed(v: float, lo: float, hi: float) -> str:
+                return "-" if not np.isfinite(v) else f"{v:+.4f} [{lo:+.4f}, {hi:+.4f}]"
+
+            chg = r[f"{m0}_iqm_change_pct"]
+            cells = [r["kind"], f"{r['runs']} x {r['episodes'] // max(int(r['runs']), 1)}",
+                     ci(m0, "iqm"), ci(m0, "mean"), ci("true_full_mean", "iqm"), ci("true_full_mean", "mean"),
+                     "-" if not np.isfinite(chg) else f"{chg:+.1f} %",
+                     "-" if r["policy"] == best else signed(r["paired_diff"], r["paired_diff_lo"],
+                                                            r["paired_diff_hi"])]
+            if has_base:
+                d = signed(r["paired_diff_base"], r["paired_diff_base_lo"], r["paired_diff_base_hi"])
+                cells.append(f"{d} (base {r['base']})" if r["base"] and d != "-" else "-")
+            cells += ["-" if not np.isfinite(r["poi"]) else f"{r['poi']:.2f} [{r['poi_lo']:.2f}, {r['poi_hi']:.2f}]",
+                      "-" if not np.isfinite(r["termination_rate"]) else f"{100 * r['termination_rate']:.0f} %"]
             if gap:
                 cells.append("-" if not np.isfinite(r["gap_closed"]) else f"{r['gap_closed']:.2f}")
             cls = "leaderboard-row best" if r["policy"] == best else "leaderboard-row"
             cls += " reference" if r["kind"] == "reference" else ""
-            parts.append(f"<tr class='{cls}' data-policy='{html.escape(str(r['policy']), quote=True)}'>" +
+            swatch = f"<span class='swatch' style='background:{styles[r['policy']].color}'></span>"
+            parts.append(f"<tr class='{cls}' data-policy='{html.escape(str(r['policy']), quote=True)}'>"
+                         f"<td>{swatch}{html.escape(str(r['policy']))}</td>" +
                          "".join(f"<td>{html.escape(str(c))}</td>" for c in cells) + "</tr>")
         parts.append("</tbody></table>")
     return "\n".join(parts)
 
 
-_CSS = """body{font-family:system-ui,sans-serif;margin:2em;max-width:1400px}
+_CSS = """body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1400px;padding:0 1em;color:#222}
+h2{margin-top:1.6em;border-bottom:1px solid #ddd;padding-bottom:.2em}
 table{border-collapse:collapse;margin-bottom:1em;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px}
-tr.best{font-weight:bold;background:#fff4e5}tr.reference{color:#666;font-style:italic}th{background:#f3f3f3}pre{background:#f7f7f7;padding:1em;
-overflow:auto;font-size:11px}.note{color:#555;font-size:13px}"""
+td:first-child{min-width:16em}tr.best{font-weight:bold;background:#fff4e5}tr.reference{color:#666;font-style:italic}
+th{background:#f3f3f3}pre{background:#f7f7f7;padding:1em;overflow:auto;font-size:11px}
+.note{color:#444;font-size:14px;max-width:75em}.swatch{display:inline-block;width:.8em;height:.8em;margin-right:.45em;
+border-radius:2px;vertical-align:baseline}dl.columns{font-size:13px;max-width:80em;display:grid;
+grid-template-columns:max-content auto;gap:.25em 1em}dl.columns dt{font-weight:bold}dl.columns dd{margin:0}
+nav a{margin-right:1em}nav{font-size:14px}"""
 
 
-_OPTIONAL_TRACE_COLUMNS = ("own_ref_x", "own_ref_y", "est_x", "est_y", "packet_age")
-
-
-def _stored_episode(traces: pd.DataFrame | None, tier: str, label: str, seed: int) -> pd.DataFrame | None:
-    """The recorded per-step episode of ``label`` on ``tier`` / ``seed`` from ``traces.parquet``."""
+def _stored_episode(traces: pd.DataFrame | None, tier: str, label: str, seed: int,
+                    where: str = "traces.parquet") -> pd.DataFrame | None:
+    """The recorded per-step episode of ``label`` on ``tier`` / ``seed`` from ``traces.parquet``,
+    its values checked (ValueError naming the file, the column and the episode)."""
     if traces is None or traces.empty or not {"tier", "policy", "seed"} <= set(traces.columns):
         return None
     d = traces[(traces["tier"].astype(str) == tier) & (traces["policy"].astype(str) == label)
@@ -345,8 +815,34 @@ def _stored_episode(traces: pd.DataFrame | None, tier: str, label: str, seed: in
     if d.empty:
         return None
     d = d.drop(columns=["tier", "policy", "seed"]).reset_index(drop=True)
+    what = f"{where} (episode of {label!r} on {tier}, seed {seed})"
+    lacks = [c for c in _TIME_COLUMNS if c not in d]
+    if lacks:
+        raise ValueError(f"{what} lacks columns {lacks}")
+    for c in (*_TIME_COLUMNS, *(c for c in _OPTIONAL_TRACE_COLUMNS if c in d)):
+        d[c] = _numbers(d, c, what, bound=_BIG_TRACE, finite=c == "time")
+    if len(d) > 1 and not (np.diff(d["time"].to_numpy()) > 0).all():
+        raise ValueError(f"{what} column 'time' does not increase from step to step")
     empty = [c for c in _OPTIONAL_TRACE_COLUMNS if c in d and d[c].isna().all()]
     return d.drop(columns=empty)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a new temporary file beside it (created exclusively,
+    so a file or link already there under any name is never written through), then rename it
+    into place: an interrupted write never leaves half a page, and a link at ``path`` itself is
+    replaced, not followed."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".partial")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)  # as an ordinary new file (mkstemp makes it private)
+        os.replace(tmp, path)
+    finally:
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
 
 
 def write_report(bench_dir: str | Path = "results/benchmark", out: str | Path | None = None, *,
@@ -354,7 +850,8 @@ def write_report(bench_dir: str | Path = "results/benchmark", out: str | Path | 
                  time_policies: Sequence[str] | None = None) -> Path:
     """Write the HTML report of a benchmark directory and return its path.
 
-    Built from the stored tables alone (see the module docstring): never loads a model file.
+    Built from the stored tables alone (see the module docstring): never loads a model file,
+    and reads only the folder's own files.
 
     Args:
         bench_dir: a directory written by :func:`agents.benchmark.benchmark`.
@@ -365,39 +862,77 @@ def write_report(bench_dir: str | Path = "results/benchmark", out: str | Path | 
             else the last tier).
         replay_seed: test seed of the replay (default: the seed of the recorded episodes, else
             the tier's first benchmarked seed).
-        time_policies: policies of the force / track plots (default: the best classical, the
-            best learned and PROPOSED where present and recorded).
+        time_policies: policies drawn in the force / track plots (default: the best classical,
+            the best learned and PROPOSED where present and recorded); the other recorded
+            policies of the tier are there too, hidden until clicked in the legend.
 
     Raises:
         FileNotFoundError: no benchmark in ``bench_dir``.
+        TypeError: an argument of the wrong type.
         ValueError: unknown policy, tier or seed (names the valid ones); a learned policy asked
-            for without a recorded episode; files that are corrupt or from different runs.
+            for without a recorded episode; files that are corrupt, malformed (names the file
+            and the column), from different runs, or symbolic links out of the folder; ``out``
+            is a directory.
     """
     import plotly.offline
 
     from controllers import make_controller
 
-    res = load_result(bench_dir)
-    board, episodes, prov, traces = res.leaderboard, res.episodes, res.provenance, res.traces
-    _PALETTE.clear()
-    for p in dict.fromkeys(board["policy"].astype(str)):
-        _color(p)
+    if not isinstance(bench_dir, (str, os.PathLike)):
+        raise TypeError(f"bench_dir={bench_dir!r} is invalid: must be a path (str or Path)")
+    if out is not None and not isinstance(out, (str, os.PathLike)):
+        raise TypeError(f"out={out!r} is invalid: must be a path (str or Path) or None")
+    for arg, v in (("replay_policy", replay_policy), ("replay_tier", replay_tier)):
+        if v is not None and not isinstance(v, str):
+            raise TypeError(f"{arg}={v!r} is invalid: must be a str or None")
+    if replay_seed is not None and (isinstance(replay_seed, bool) or not isinstance(replay_seed, (int, np.integer))):
+        raise TypeError(f"replay_seed={replay_seed!r} is invalid: must be a whole number (int) or None")
+    if time_policies is not None:
+        if isinstance(time_policies, str) or not all(isinstance(p, str) for p in time_policies):
+            raise TypeError(f"time_policies={time_policies!r} is invalid: must be a list of policy labels (str)")
+        time_policies = list(time_policies)
+    bench = Path(bench_dir)
+    path = Path(out) if out is not None else bench / "report.html"
+    if path.is_dir():
+        raise ValueError(f"out={str(path)!r} is a directory: give the path of an HTML file")
+    _inside(bench)
+    try:
+        res = load_result(bench)
+    except RecursionError:
+        name = _too_deep(bench)
+        raise ValueError(f"{bench / name} nests its JSON too deeply to be read: it is not a file written by "
+                         f"`auv-follow benchmark`") from None
+    board = _checked_board(res.leaderboard, str(bench / "leaderboard.csv"))
+    episodes = _checked_episodes(res.episodes, str(bench / "episodes.parquet"))
+    traces = _checked_traces(res.traces, str(bench / "traces.parquet"))
+    prov = res.provenance
+    controllers_by_label = _checked_policies(prov, str(bench / "benchmark.json"))
+    try:
+        prov_text = json.dumps(prov, indent=1, default=str)
+    except (RecursionError, ValueError) as exc:
+        raise ValueError(f"{bench / 'benchmark.json'} cannot be shown: {type(exc).__name__}") from None
+    styles = _policy_styles(board)
     tiers = [str(t) for t in dict.fromkeys(board["tier"])]
     if not tiers:
-        raise ValueError(f"{Path(bench_dir) / 'leaderboard.csv'} has no rows")
+        raise ValueError(f"{bench / 'leaderboard.csv'} has no rows")
     tier = replay_tier if replay_tier is not None else ("Hard" if "Hard" in tiers else tiers[-1])
     if tier not in tiers:
         raise ValueError(f"replay_tier={replay_tier!r} was not benchmarked: valid tiers are {tiers}")
-    _, env_id = resolve_tier(tier)
-    sub = board[(board["tier"].astype(str) == tier) & (board["kind"].astype(str) != "reference")]
-    sub = sub.sort_values("true_steady_mean_iqm")  # (floors are references: nothing to replay)
-    labels = [str(p) for p in sub["policy"]]
-    kinds = dict(zip(labels, sub["kind"].astype(str), strict=True))
-    seeds = sorted(int(x) for x in episodes.loc[episodes["tier"].astype(str) == tier, "seed"].unique())
+    try:
+        _, env_id = resolve_tier(tier)
+    except ValueError as exc:
+        if replay_tier is not None:
+            raise
+        raise ValueError(f"{bench / 'leaderboard.csv'} column 'tier': {exc}") from None
+    sub = board[(board["tier"] == tier) & (board["kind"] != "reference")]
+    sub = sub.assign(_v=sub["true_steady_mean_iqm"].fillna(np.inf)).sort_values("_v", kind="stable")
+    labels = [str(p) for p in sub["policy"]]  # (floors are references: nothing to replay)
+    kinds = dict(zip(labels, sub["kind"], strict=True))
+    seeds = sorted(int(x) for x in episodes.loc[episodes["tier"] == tier, "seed"].unique())
     if not seeds:
-        raise ValueError(f"{Path(bench_dir) / 'episodes.parquet'} has no episodes of tier {tier!r}")
-    traced = sorted(int(x) for x in traces.loc[traces["tier"].astype(str) == tier, "seed"].unique()) \
-        if traces is not None and not traces.empty else []
+        raise ValueError(f"{bench / 'episodes.parquet'} has no episodes of tier {tier!r}")
+    traced = sorted(int(x) for x in traces.loc[traces["tier"] == tier, "seed"].unique()) \
+        if traces is not None else []
     seed = int(replay_seed) if replay_seed is not None else (traced[0] if traced else seeds[0])
     if seed not in seeds:
         raise ValueError(f"replay_seed={replay_seed!r} was not benchmarked on {tier}: valid seeds are "
@@ -406,17 +941,16 @@ def write_report(bench_dir: str | Path = "results/benchmark", out: str | Path | 
     task_spec = probe.unwrapped.task_spec
     probe.close()
     limits = tuple(float(v) for v in task_spec.force_limits)
-    controllers_by_label = {str(p.get("label")): p.get("controller") for p in prov["config"].get("policies", [])
-                            if isinstance(p, dict)}
     scripted = set(_controllers())
     cache: dict[str, pd.DataFrame | None] = {}
+    where = str(bench / "traces.parquet")
 
-    def episode(label: str) -> pd.DataFrame | None:
+    def episode(label: str, rerun: bool = True) -> pd.DataFrame | None:
         """Recorded episode, or a scripted controller of this package re-run; never a model file."""
-        if label not in cache:
-            df = _stored_episode(traces, tier, label, seed)
+        if label not in cache or (cache[label] is None and rerun):
+            df = _stored_episode(traces, tier, label, seed, where)
             ctrl = controllers_by_label.get(label)
-            if df is None and kinds.get(label) == "classical" and ctrl in scripted:
+            if df is None and rerun and kinds.get(label) == "classical" and ctrl in scripted:
                 df = rollout_episode(make_controller(ctrl, task_spec), env_id, seed)
             if df is not None:
                 df.attrs["force_limits"] = limits
@@ -425,9 +959,8 @@ def write_report(bench_dir: str | Path = "results/benchmark", out: str | Path | 
 
     def refuse(arg: str, label: str) -> None:
         have = [p for p in labels if episode(p) is not None]
-        raise ValueError(f"{arg}={label!r} has no recorded episode on {tier}, seed {seed} in "
-                         f"{Path(bench_dir) / 'traces.parquet'} (a report never loads model files): policies with "
-                         f"one are {have}")
+        raise ValueError(f"{arg}={label!r} has no recorded episode on {tier}, seed {seed} in {where} (a report "
+                         f"never loads model files): policies with one are {have}")
 
     if replay_policy is not None:
         if replay_policy not in labels:
@@ -449,43 +982,73 @@ def write_report(bench_dir: str | Path = "results/benchmark", out: str | Path | 
             refuse("time_policies", p)
     missing = [p for p in labels if kinds[p] == "learned" and episode(p) is None]
     runs = {p: episode(p) for p in dict.fromkeys([*time_policies, *([policy] if policy else [])])}
+    # the tier's other recorded episodes: in the time plots too, hidden until clicked (no re-runs)
+    timed = {p: runs[p] for p in time_policies}
+    timed.update({p: df for p in labels if p not in timed and (df := episode(p, rerun=False)) is not None})
+    timed = dict(sorted(timed.items(), key=lambda kv: styles[kv[0]].rank))
     est_label = next((p for p in runs if "est_x" in runs[p]), policy)
-    figs = [
-        ("Leaderboard", _fig_leaderboard(board)),
-        ("Error vs latency", _fig_breakdown(episodes, "cond_latency_s", "latency [s]")),
-        ("Error vs loss rate", _fig_breakdown(episodes, "cond_loss_prob", "packet loss probability")),
+    few = (f"the best {SHOWN_PER_FAMILY} of each family on each tier and the information floor (the control "
+           f"floor lies one to three decades below and is in the legend)")
+    click = ("click a legend entry to show or hide that policy, double-click it to show it alone; the buttons "
+             "above the chart show all policies or the best few again")
+    sections: list[tuple[str, str, str, Any]] = [
+        ("leaderboard-chart", "Steady-state error by policy",
+         f"The steady-state IQM of each policy with its 95 % CI (log scale), one panel per tier; drawn: {few}. "
+         f"The others are listed in the legend: {click}.", _fig_leaderboard(board, styles)),
+        ("latency", "Error vs latency",
+         f"The steady-state error against the drawn packet latency: the latency is cut into 6 equal-width bins "
+         f"within each tier, one point per bin (the IQM of its episodes). Drawn: {few}; {click}.",
+         _fig_breakdown(episodes, "cond_latency_s", "latency [s]", styles)),
+        ("loss", "Error vs loss rate",
+         f"The same against the drawn packet loss probability. Drawn: {few}; {click}.",
+         _fig_breakdown(episodes, "cond_loss_prob", "packet loss probability", styles)),
     ]
     if time_policies:
-        figs += [("Forces", _fig_forces({p: runs[p] for p in time_policies})),
-                 ("Along- and cross-track error", _fig_track({p: runs[p] for p in time_policies}))]
+        shown = ", ".join(html.escape(p) for p in time_policies)
+        sections += [
+            ("forces", "Forces",
+             f"Forces over time on {html.escape(tier)}, seed {seed} (dotted: the force limits). Drawn: {shown}; "
+             f"the tier's other recorded policies are in the legend, {click.split(';')[0]}.",
+             _fig_forces(timed, styles, time_policies)),
+            ("track", "Along- and cross-track error",
+             "The follower's error from the true reference in the true target's heading frame, same episode "
+             "and policies as above.", _fig_track(timed, styles, time_policies))]
     if policy is not None:
-        figs += [("Delayed, estimated and true target",
-                  _fig_targets(runs[est_label], f"{tier}, seed {seed}: delayed (received), estimated ({est_label}) "
-                                                f"and true target")),
-                 ("Episode replay", _fig_replay(runs[policy], f"Replay: {policy} on {tier}, seed {seed}"))]
+        sections += [
+            ("targets", "Delayed, estimated and true target",
+             f"{html.escape(tier)}, seed {seed}: the true target (black), what the follower received (grey "
+             f"crosses: delayed and noisy, with gaps where packets were lost), the target {html.escape(est_label)} "
+             f"estimated (its own reference minus the offset p_d, dotted) and its path (solid), in its colour.",
+             _fig_targets(runs[est_label], est_label, styles[est_label].color)),
+            ("replay", "Episode replay",
+             f"Replay: {html.escape(policy)} on {html.escape(tier)}, seed {seed}. Press play or drag the slider. The "
+             f"follower is drawn in its colour, the true target in black, the received packets of the last 20 s "
+             f"as grey crosses.", _fig_replay(runs[policy], styles[policy].color))]
     note = ("" if not missing else
             f" Learned policies without a recorded episode in traces.parquet (left out of the time plots and the "
             f"replay; a report never loads model files): {html.escape(', '.join(missing))}.")
+    families = [f for f in _FAMILIES if any(s.family == f for s in styles.values())]
     body = [f"<h1>auv-follow benchmark</h1><p class='note'>Tiers: {html.escape(', '.join(tiers))}. "
             f"Time plots and replay: {html.escape(tier)} ({html.escape(env_id)}), test seed {seed}. Every number is "
             f"reproduced by the command in the provenance below.{note}</p>",
-            "<h2>Leaderboard</h2>", _table_html(board)]
-    for k, (title, fig) in enumerate(figs):
-        body.append(f"<h2>{html.escape(title)}</h2>")
+            "<p class='note'>Each policy has one colour, the same in every chart and beside its name in the "
+            f"tables: {html.escape(', '.join(_FAMILY_NAMES[f] for f in families))}; the best of each family have "
+            "the strongest, most distinct colours.</p>",
+            "<nav>" + "".join(f"<a href='#{a}'>{html.escape(t)}</a>" for a, t in
+                              [("leaderboard", "Leaderboard"), *((s[0], s[1]) for s in sections),
+                               ("provenance", "Provenance")]) + "</nav>",
+            "<h2 id='leaderboard'>Leaderboard</h2><p class='note'>One table per tier, sorted by the steady-state "
+            "IQM (best first). The columns:</p>", _table_html(board, styles)]
+    for k, (anchor, title, caption, fig) in enumerate(sections):
+        body.append(f"<h2 id='{anchor}'>{html.escape(title)}</h2><p class='note'>{caption}</p>")
         body.append(fig.to_html(full_html=False, include_plotlyjs=False, div_id=f"fig{k}",
                                 config={"displaylogo": False, "responsive": True}))
-    body.append("<h2>Provenance</h2><details><summary>configuration, versions and the command (click to "
-                "expand)</summary><pre>" + html.escape(json.dumps(prov, indent=1, default=str)) + "</pre></details>")
+    body.append("<h2 id='provenance'>Provenance</h2><details><summary>configuration, versions and the command "
+                "(click to expand)</summary><pre>" + html.escape(prov_text) + "</pre></details>")
     page = ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>auv-follow benchmark</title>"
             "<link rel='icon' href='data:,'>"
             f"<style>{_CSS}</style><script type='text/javascript'>{plotly.offline.get_plotlyjs()}</script>"
             "</head><body>" + "\n".join(body) + "</body></html>")
-    path = Path(out) if out is not None else Path(bench_dir) / "report.html"
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.partial")
-    try:
-        tmp.write_text(page, encoding="utf-8")
-        tmp.replace(path)  # an interrupted write never leaves half a page
-    finally:
-        tmp.unlink(missing_ok=True)
+    _write_atomic(path, page)
     return path
