@@ -68,12 +68,13 @@ _FAMILY_OF_KIND = {REFERENCE_KIND: "floor", "classical": "classical", "learned":
 _FAMILY_NAMES = {"floor": "floors (grey)", "classical": "classical controllers (warm colours)",
                  "learned": "learned policies (cool colours)", "other": "other policies (magenta)"}
 _PALETTES = {
-    "floor": ("#3d3d3d", "#8f8f8f", "#5f5f5f", "#b0b0b0"),
+    "floor": ("#7f7f7f", "#3d3d3d", "#b0b0b0", "#5f5f5f"),
     "classical": ("#d62728", "#ff7f0e", "#8c564b", "#e6ab02", "#7f2704", "#a6761d", "#fb9a99", "#c49c94",
                   "#fdbf6f", "#67000d"),
     "learned": ("#1f77b4", "#2ca02c", "#9467bd", "#17becf", "#08306b", "#005a32", "#54278f", "#00796b",
-                "#2b8cbe", "#41ab5d", "#807dba", "#4eb3d3", "#6baed6", "#74c476", "#bcbddc", "#a1d99b",
-                "#99d8c9", "#c6dbef", "#c7e9c0", "#9e9ac8", "#0868ac", "#238b45", "#3f007d", "#6a51a3"),
+                "#2b8cbe", "#41ab5d", "#807dba", "#4eb3d3", "#1b9e77", "#386cb0", "#7570b3", "#393b79",
+                "#008b8b", "#4daf4a", "#3288bd", "#5e3c99", "#6baed6", "#74c476", "#bcbddc", "#a1d99b",
+                "#99d8c9", "#c6dbef", "#c7e9c0", "#9e9ac8"),
     "other": ("#cc33cc", "#e7298a", "#7a0177", "#f768a1", "#ae017e"),
 }
 _HUES = {"floor": (0.0, 0.0), "classical": (0.0, 50.0), "learned": (95.0, 265.0), "other": (300.0, 340.0)}
@@ -142,8 +143,9 @@ def _policy_styles(board: pd.DataFrame, shown_per_family: int = SHOWN_PER_FAMILY
     the information floor). Colours are unique: the policies drawn by default, family by family
     and best first, each take the first free colour of the family's palette (strong colours
     first) that differs by :data:`_DISTINCT` from the colours of the default-drawn policies (of
-    any family) on its tiers, else the most different of the next few; the others take the
-    remaining colours in palette order."""
+    any family but the floors, which are also told by their dashes and diamonds) on its tiers,
+    else the most different of the next few; the others take the remaining colours in palette
+    order."""
     m = "true_steady_mean_iqm"
     family = {}
     for p, k in zip(board["policy"], board["kind"], strict=True):
@@ -181,7 +183,7 @@ def _policy_styles(board: pd.DataFrame, shown_per_family: int = SHOWN_PER_FAMILY
                 free.append(_generated(f, extra))
                 extra += 1
             if p in shown:
-                near = [c for q, c in drawn.items() if tiers_of[q] & tiers_of[p]]
+                near = [c for q, c in drawn.items() if tiers_of[q] & tiers_of[p] and family[q] != "floor"]
                 gap = [min((_distance(c, n) for n in near), default=math.inf) for c in free]
                 pick = next((c for c, g in zip(free, gap, strict=True) if g >= _DISTINCT), None)
                 if pick is None:
@@ -558,6 +560,11 @@ def _fig_breakdown(episodes: pd.DataFrame, condition: str, label: str, styles: d
     return fig
 
 
+def _f4(s: pd.Series) -> np.ndarray:
+    """A recorded time series as float32 (as traces.parquet stores it): half the page's bytes."""
+    return s.to_numpy(np.float32)
+
+
 def _fig_forces(runs: dict[str, pd.DataFrame], styles: dict[str, _Style], shown: Sequence[str]):
     import plotly.graph_objects as go
     from plotly.subplots import make_subplots
@@ -568,7 +575,7 @@ def _fig_forces(runs: dict[str, pd.DataFrame], styles: dict[str, _Style], shown:
     limits = next(iter(runs.values())).attrs.get("force_limits", (np.nan,) * 3)
     for pol, df in runs.items():
         for j, (n, _) in enumerate(names, start=1):
-            fig.add_trace(go.Scatter(x=df["time"], y=df[n], name=_txt(pol), legendgroup=styles[pol].group,
+            fig.add_trace(go.Scatter(x=_f4(df["time"]), y=_f4(df[n]), name=_txt(pol), legendgroup=styles[pol].group,
                                      showlegend=j == 1, legendrank=styles[pol].rank,
                                      visible=True if pol in shown else "legendonly",
                                      line={"color": styles[pol].color, "width": 1.3},
@@ -593,7 +600,7 @@ def _fig_track(runs: dict[str, pd.DataFrame], styles: dict[str, _Style], shown: 
                         vertical_spacing=0.1)
     for pol, df in runs.items():
         for j, col in enumerate(("along_track", "cross_track"), start=1):
-            fig.add_trace(go.Scatter(x=df["time"], y=df[col], name=_txt(pol), legendgroup=styles[pol].group,
+            fig.add_trace(go.Scatter(x=_f4(df["time"]), y=_f4(df[col]), name=_txt(pol), legendgroup=styles[pol].group,
                                      showlegend=j == 1, legendrank=styles[pol].rank,
                                      visible=True if pol in shown else "legendonly",
                                      line={"color": styles[pol].color, "width": 1.3},
@@ -622,7 +629,7 @@ def _fig_targets(df: pd.DataFrame, label: str, color: str):
                                  line={"color": color, "dash": "dot", "width": 2}))
     fig.add_trace(go.Scatter(x=df["follower_x"], y=df["follower_y"], mode="lines", name=f"follower ({_txt(label)})",
                              line={"color": color, "width": 1.5}))
-    fig.update_layout(xaxis={"title": "x [m]", "constrain": "domain"}, yaxis_title="y [m]", height=620,
+    fig.update_layout(xaxis={"title": "x [m]", "constrain": "domain"}, yaxis_title="y [m]", height=720,
                       yaxis={"scaleanchor": "x", "scaleratio": 1},
                       legend={"orientation": "h", "yanchor": "bottom", "y": 1.02, "x": 0.0},
                       margin={"l": 10, "r": 10, "t": 40})
@@ -658,7 +665,7 @@ def _fig_replay(df: pd.DataFrame, color: str, every: int = 10, trail_s: float = 
     steps = [{"args": [[f.name], {"frame": {"duration": 0, "redraw": True}, "mode": "immediate"}],
               "label": f.name, "method": "animate"} for f in frames]
     fig.update_layout(
-        height=660, xaxis={"title": "x [m]", "constrain": "domain"}, margin={"l": 10, "r": 10, "t": 40},
+        height=720, xaxis={"title": "x [m]", "constrain": "domain"}, margin={"l": 10, "r": 10, "t": 40},
         yaxis={"title": "y [m]", "scaleanchor": "x", "scaleratio": 1},
         legend={"orientation": "h", "yanchor": "bottom", "y": 1.02, "x": 0.0},
         updatemenus=[{"type": "buttons", "showactive": False, "x": 0.0, "y": -0.12, "buttons": [

@@ -342,9 +342,10 @@ def test_styles_one_colour_per_policy_by_family_and_rank():
     order = sorted(st, key=lambda p: st[p].rank)
     assert order[:2] == ["control floor", "information floor"] and order[2:7] == ["A", "B", "D", "C", "E"]
     assert order[-1] == "X"
-    # the default-drawn policies of a tier are told apart by their colours
+    # the default-drawn policies of a tier are told apart by their colours (the floors also by dashes)
     for tier in ("T1", "T2"):
-        drawn = [st[p].color for p in board.loc[board["tier"] == tier, "policy"] if st[p].shown]
+        drawn = [st[p].color for p in board.loc[board["tier"] == tier, "policy"] if st[p].shown
+                 and st[p].family != "floor"]
         gaps = [R._distance(a, b) for i, a in enumerate(drawn) for b in drawn[i + 1:]]
         assert min(gaps) >= R._DISTINCT
 
