@@ -837,18 +837,26 @@ def _stored_episode(traces: pd.DataFrame | None, tier: str, label: str, seed: in
 def _write_atomic(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` through a new temporary file beside it (created exclusively,
     so a file or link already there under any name is never written through), then rename it
-    into place: an interrupted write never leaves half a page, and a link at ``path`` itself is
-    replaced, not followed."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".partial")
+    into place: an interrupted or failed write never leaves half a page, and a link at ``path``
+    itself is replaced, not followed.
+
+    Raises:
+        ValueError: the page cannot be written (full disk, no permission, ...): names ``path``.
+    """
+    tmp = None
     try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".partial")
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(text)
         mask = os.umask(0)
         os.umask(mask)
         os.chmod(tmp, 0o666 & ~mask)  # as an ordinary new file (mkstemp makes it private)
         os.replace(tmp, path)
+    except OSError as exc:
+        raise ValueError(f"cannot write the report {path}: {exc.strerror or exc} (the previous page, if any, "
+                         f"is unchanged)") from None
     finally:
-        if os.path.lexists(tmp):
+        if tmp is not None and os.path.lexists(tmp):
             os.unlink(tmp)
 
 

@@ -103,6 +103,26 @@ def test_interrupted_write_leaves_the_old_page_and_no_temporary_file(bench, tmp_
     assert sorted(p.name for p in b.iterdir()) == before
 
 
+@pytest.mark.parametrize("where", ["mkstemp", "replace"])
+def test_failed_write_is_one_line_and_keeps_the_old_page(bench, tmp_path, monkeypatch, capsys, where):
+    """A full disk (ENOSPC) when the temporary page is created or renamed: one line naming the page, the old
+    page unchanged, no temporary file left."""
+    import errno
+
+    b = _stripped(bench, tmp_path / "b")
+    (b / "report.html").write_text("OLD PAGE")
+    before = sorted(p.name for p in b.iterdir())
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(R.tempfile if where == "mkstemp" else R.os, where, full)
+    code, err = _report_cli(b, capsys)
+    assert code == 2 and len(err) == 1, err
+    assert f"cannot write the report {b / 'report.html'}: No space left on device" in err[0]
+    assert (b / "report.html").read_text() == "OLD PAGE" and sorted(p.name for p in b.iterdir()) == before
+
+
 def test_page_file_mode_follows_the_umask(bench, tmp_path):
     """An ordinary new file (rw-r--r-- under umask 022), not the private mode of a temporary file."""
     import os
