@@ -316,6 +316,44 @@ def _check_normalize(v: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+#: bounds of policy_kwargs net_arch: hidden layers, and units per layer
+_MAX_LAYERS, _MAX_HIDDEN = 16, 8192
+#: the keys of a net_arch dict each algorithm reads (SB3 ignores any other key without a word)
+_NET_ARCH_KEYS = {"ppo": ("pi", "vf"), "recurrentppo": ("pi", "vf"), "bppo": ("pi", "vf"), "sac": ("pi", "qf"),
+                  "td3": ("pi", "qf")}
+
+
+def _check_net_arch(algo: str, arch: Any) -> Any:
+    """policy_kwargs net_arch: a list of hidden sizes (whole numbers in [1, 8192], at most 16), or
+    a dict of such lists under the keys the algorithm reads; whole floats become ints."""
+    keys = _NET_ARCH_KEYS.get(algo, ("pi", "vf"))
+    what = (f"a list of at most {_MAX_LAYERS} hidden sizes (whole numbers in [1, {_MAX_HIDDEN}]) or "
+            f"dict({', '.join(k + '=[...]' for k in keys)})")
+
+    def sizes(v: Any) -> list[int]:
+        ok = isinstance(v, (list, tuple)) and len(v) <= _MAX_LAYERS
+        out = []
+        for h in v if ok else ():
+            good = isinstance(h, (int, float, np.integer, np.floating)) and not isinstance(h, (bool, np.bool_))
+            good = good and (isinstance(h, (int, np.integer)) or (math.isfinite(h) and float(h).is_integer()))
+            if not (good and 1 <= h <= _MAX_HIDDEN):
+                ok = False
+                break
+            out.append(int(h))
+        if not ok:
+            raise ConfigError("hyperparams", f"hyperparameter policy_kwargs net_arch={arch!r} is invalid: must be "
+                                             f"{what}")
+        return out
+
+    if isinstance(arch, dict):
+        bad = sorted(map(str, set(arch) - set(keys)))
+        if bad:
+            raise ConfigError("hyperparams", f"hyperparameter policy_kwargs net_arch has key(s) {bad} that {algo} "
+                                             f"does not read: valid keys are {list(keys)}")
+        return {k: sizes(v) for k, v in arch.items()}
+    return sizes(arch)
+
+
 def _check_log_std_init(x: Any) -> float:
     lo, hi = _LOG_STD_INIT_RANGE
     y = x
@@ -382,6 +420,8 @@ def check_hyperparams(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
                 raise ConfigError("hyperparams", f"hyperparameter policy_kwargs={v!r} is invalid: must be a dict")
             if v is not None and "log_std_init" in v:
                 v = {**v, "log_std_init": _check_log_std_init(v["log_std_init"])}
+            if v is not None and "net_arch" in v:
+                v = {**v, "net_arch": _check_net_arch(algo, v["net_arch"])}
         elif key == "policy":
             if not isinstance(v, str):
                 raise ConfigError("hyperparams", f"hyperparameter policy={v!r} is invalid: must be a policy name "
@@ -497,6 +537,15 @@ class TrainConfig:
         for name in ("include_base_action", "progress_bar", "tensorboard", "final_eval"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(name, f"{name}={getattr(self, name)!r} is invalid: must be True or False")
+        if self.mode != "residual":  # recorded (and handed to bppo's observation) in every mode
+            try:
+                from agents.residual import _check
+                from controllers import ALL_CONTROLLERS
+
+                _check(ALL_CONTROLLERS[0], self.scale, self.resolved_history_len(), self.history_stride)
+            except ValueError as exc:
+                name = str(exc).split("=", 1)[0]
+                raise ConfigError(name if name in self.residual_kwargs() else "scale", str(exc)) from None
         if not isinstance(self.out_dir, (str, Path)) or str(self.out_dir) == "":
             raise ConfigError("out_dir", f"out_dir={self.out_dir!r} is invalid: must be a directory path")
         out = Path(self.out_dir)
@@ -1137,10 +1186,7 @@ def _train_batched(cfg: TrainConfig, plan: _Plan, return_model: bool):
         raise TrainingFailed(run, steps, f"a write failed: {_one_line(exc)}") from exc
     resolved["result"] = result
     _write_yaml(run / "config.yaml", resolved)
-    if result.get("failed"):
-        print(f"training failed at {result['num_timesteps']:,} steps: {result['failed']}; config.yaml records "
-              f"result.failed and no model.zip was written (checkpoints before it are kept) in {run}",
-              file=sys.stderr)
+    if result.get("failed"):  # config.yaml records result.failed; no model.zip (checkpoints before it are kept)
         raise TrainingFailed(run, result["num_timesteps"], result["failed"])
     if interrupted:
         print(f"training interrupted at {result['num_timesteps']:,} steps: model.zip, normalisation statistics and "
