@@ -14,7 +14,9 @@ minibatches of the whole rollout.
 1 / (1 - gamma) = 200 steps = 10 s at dt = 0.05 s, longer than a packet cycle on Hard
 (4-7 s), so the value of waiting for the next packet is inside the horizon (SB3's default
 0.98 covered 2.5 s). Observation and reward normalisation as SB3's ``VecNormalize``
-(running mean / variance; the reward divided by the running std of the discounted return).
+(running mean / variance; the reward divided by the running std of the discounted return),
+with ``normalize=dict(...)``'s ``clip_obs``, ``clip_reward``, ``epsilon`` and ``gamma`` honoured as SB3
+does (defaults 10, 10, 1e-8 and the algorithm's gamma).
 ``lr_schedule``: ``constant`` (the constructor's default, what the first committed runs used)
 or ``linear`` (the YAML default: decays to 0 at ``n_timesteps``, as CleanRL's ``anneal_lr``;
 the policy's std shrinks over training, and at a constant rate the late updates grew until
@@ -32,9 +34,10 @@ training return (paper's PROPOSED on Medium: 0.128 m -> 0.50 m in 3 M steps), wi
 Gaussian policy with a state-independent log std; the mean layer starts at 0.01 x the usual
 scale, so a residual agent starts at (almost) the base controller.
 
-**Options** in ``policy_kwargs``: ``net_arch`` (hidden sizes), ``activation`` (tanh/relu),
-``log_std_init``, ``linear_skip`` (the actor's mean adds a linear map of its input,
-initialised at zero: a near-linear law such as a PD on the estimated error is one layer
+**Options** in ``policy_kwargs``: ``net_arch`` (hidden sizes: one list for the actor and the
+critic, or SB3's ``dict(pi=[...], vf=[...])`` for each its own; at most 16 layers of 8192),
+``activation`` (tanh/relu), ``log_std_init`` (in [-5, 2]), ``linear_skip`` (the actor's mean
+adds a linear map of its input, initialised at zero: a near-linear law such as a PD on the estimated error is one layer
 away), ``recurrent`` (a GRU trunk of ``gru_size`` units shared by actor and
 critic, trained on whole rollout sequences per env with the state reset at episode
 starts), ``privileged_critic`` (asymmetric critic: the critic also sees the *true* present
@@ -52,6 +55,11 @@ critic onto the returns of the executed actions. ``teacher_link="perfect"`` give
 the present target exactly (:func:`agents.floors.perfect_link_observation`: privileged, training
 only); ``"real"`` the same link as the student. The teacher's disturbance observer is told the
 force the env was commanded, not the teacher's own. PPO then continues from the student.
+
+**Divergence.** Every action, loss and (after each update) parameter is checked: at the first
+NaN or infinite one training stops, no ``model.zip`` is written (checkpoints from before stay),
+``config.yaml`` records ``result.failed`` and :func:`agents.train.train` raises
+:class:`agents.train.TrainingFailed` (``auv-follow train``: one line, exit code 1).
 
 **Threads.** The env steps on numba's serial kernel (``parallel=False``) and torch uses
 ``torch_threads`` threads (default 1): training is a serial loop of env step, base
@@ -758,9 +766,9 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
         if writer is not None:
             writer.close()
     # saved after a finished run or Ctrl-C; a diverged network is not saved (the checkpoints before it are kept)
+    status(steps, elapsed)
     if diverged is None:
         save(run / "model.zip", run / "vecnormalize.json", steps)
-    status(steps, elapsed)
     result = {"num_timesteps": steps, "start_timesteps": start_steps, "wall_clock_s": round(elapsed, 2),
               "steps_per_s": round((steps - start_steps) / max(elapsed, 1e-9), 1), "interrupted": interrupted}
     if diverged is not None:

@@ -16,9 +16,14 @@ A run writes everything into its own directory ``<out>/<algo>-<env>-<mode>-seed<
 * ``monitor/`` (per-episode Monitor CSVs of the training envs) and ``eval/evaluations.npz``
   (``EvalCallback``); ``tb/`` (TensorBoard, when ``tensorboard`` is importable).
 
-Everything is validated before the run directory is created: a refused configuration
-leaves nothing behind. Ctrl-C during training saves the model and the statistics, records
-``interrupted: true`` and re-raises (:class:`TrainingInterrupted`).
+Everything is validated before the run directory is created (hyperparameters and their
+values, the ``normalize`` settings, ``out_dir``'s writability, a ``--resume`` checkpoint and its
+statistics): a refused configuration leaves nothing behind. Ctrl-C during training saves the
+model and the statistics, records ``interrupted: true`` and re-raises
+(:class:`TrainingInterrupted`). Training that diverges (NaN or infinite values) or fails (the
+algorithm raises, a write fails) writes no final ``model.zip``, records ``result.failed`` and
+raises :class:`TrainingFailed`: such a run is never taken for a finished one. Files are written
+through a temporary file beside them, removed if the write fails.
 
 :func:`load_agent` turns a run directory (or a ``.zip`` inside it) back into a policy with
 SB3's ``predict`` protocol plus the env wrapper it needs, for
