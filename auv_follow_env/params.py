@@ -30,12 +30,24 @@ __all__ = [
     "NOMINAL_VEHICLE",
     "make_config",
     "make_task_spec",
+    "UnknownKeywordError",
 ]
+
+
+class UnknownKeywordError(TypeError, ValueError):
+    """A keyword that the env (or :func:`make_config`) does not take.
+
+    A ``TypeError``, as Python raises for an unexpected keyword argument (tools such as
+    TorchRL's ``GymEnv`` drop a keyword they tried when they see one), and also a
+    ``ValueError``, so callers that catch the bad-value errors of the overrides catch it too.
+    The message names every unknown keyword ("unexpected keyword argument 'name'") and lists
+    the valid ones.
+    """
 
 
 def _require(cond: bool, name: str, value: object, allowed: str) -> None:
     if not cond:
-        raise ValueError(f"{name}={value!r} is invalid: must be {allowed}")
+        raise ValueError(f"{name}={_short(value)} is invalid: must be {allowed}")
 
 
 def _is_real(v: object) -> bool:
@@ -43,11 +55,49 @@ def _is_real(v: object) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
-def as_real(name: str, v: object) -> float:
-    """``v`` as a float, or a ValueError naming ``name`` (strings, bools, None are refused)."""
+def _float_or_nan(v: object) -> float:
+    """A real number as a float; NaN for anything else, and for an int too large for a float
+    (10**400), so that every range check refuses it with the field's own message."""
     if not _is_real(v):
-        raise ValueError(f"{name}={v!r} is invalid: must be a real number (got {type(v).__name__})")
-    return float(v)  # type: ignore[arg-type]
+        return math.nan
+    try:
+        return float(v)  # type: ignore[arg-type]
+    except OverflowError:
+        return math.nan
+
+
+def _too_large(v: object) -> bool:
+    """An int too large for a float (only Python ints can be: numpy's fit in a float64)."""
+    if not isinstance(v, int) or isinstance(v, bool):
+        return False
+    try:
+        float(v)
+    except OverflowError:
+        return True
+    return False
+
+
+def _finite_real(v: object) -> bool:
+    """A real number (not a bool) that is finite as a float."""
+    return math.isfinite(_float_or_nan(v))
+
+
+def _short(v: object) -> str:
+    """``repr(v)``, cut to 80 characters (an int with 400 digits is named, not printed)."""
+    r = repr(v)
+    return r if len(r) <= 80 else f"{r[:60]}...({len(r)} characters)"
+
+
+def as_real(name: str, v: object) -> float:
+    """``v`` as a float, or a ValueError naming ``name`` (strings, bools, None are refused, and
+    ints too large for a float)."""
+    if not _is_real(v):
+        raise ValueError(f"{name}={_short(v)} is invalid: must be a real number (got {type(v).__name__})")
+    try:
+        return float(v)  # type: ignore[arg-type]
+    except OverflowError:
+        raise ValueError(f"{name}={_short(v)} is invalid: must be a finite real number (this integer is too "
+                         f"large for a float)") from None
 
 
 def as_real_tuple(name: str, v: object, n: int) -> tuple[float, ...]:
@@ -56,28 +106,36 @@ def as_real_tuple(name: str, v: object, n: int) -> tuple[float, ...]:
         v = v.tolist() if v.ndim == 1 else v
     if isinstance(v, (str, bytes, dict, set)) or not isinstance(v, (tuple, list)) or len(v) != n \
             or not all(_is_real(x) for x in v):
-        raise ValueError(f"{name}={v!r} is invalid: must be a sequence (tuple, list or array) of {n} "
+        raise ValueError(f"{name}={_short(v)} is invalid: must be a sequence (tuple, list or array) of {n} "
                          f"real numbers")
+    if any(_too_large(x) for x in v):
+        raise ValueError(f"{name}={_short(v)} is invalid: must be {n} finite real numbers (an integer is too "
+                         f"large for a float)")
     return tuple(float(x) for x in v)
 
 
 def _in_range(name: str, v: float, lo: float, hi: float, unit: str = "", lo_open: bool = False) -> None:
     ok = math.isfinite(v) and (v > lo if lo_open else v >= lo) and v <= hi
     if not ok:
-        raise ValueError(f"{name}={v!r} is invalid: must be a finite number in "
+        raise ValueError(f"{name}={_short(v)} is invalid: must be a finite number in "
                          f"{'(' if lo_open else '['}{lo:g}, {hi:g}]{' ' + unit if unit else ''}")
 
 
 def _finite_positive(obj: object, *names: str) -> None:
     for n in names:
         v = getattr(obj, n)
-        _require(_is_real(v) and math.isfinite(v) and v > 0, n, v, "a finite number > 0")
+        _require(_finite_real(v) and v > 0, n, v, "a finite number > 0")
 
 
 def _finite_nonneg(obj: object, *names: str) -> None:
     for n in names:
         v = getattr(obj, n)
-        _require(_is_real(v) and math.isfinite(v) and v >= 0, n, v, "a finite number >= 0")
+        _require(_finite_real(v) and v >= 0, n, v, "a finite number >= 0")
+
+
+def _real_seq(v: object, n: int) -> bool:
+    """``v`` is a tuple or list of ``n`` finite real numbers."""
+    return isinstance(v, (tuple, list)) and len(v) == n and all(_finite_real(x) for x in v)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -125,8 +183,8 @@ class TargetParams:
     def __post_init__(self) -> None:
         _finite_positive(self, "speed", "surge_period", "yaw_period")
         _finite_nonneg(self, "yaw_rate_amp")
-        _require(isinstance(self.surge_amp, (int, float)) and 0 <= self.surge_amp < 1,
-                 "surge_amp", self.surge_amp, "in [0, 1)")
+        _require(_finite_real(self.surge_amp) and 0 <= self.surge_amp < 1,
+                 "surge_amp", self.surge_amp, "a number in [0, 1)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -148,10 +206,9 @@ class DisturbanceLevel:
 
     def __post_init__(self) -> None:
         for n in ("current_x", "current_y"):
-            lo, hi = getattr(self, n)
-            _require(math.isfinite(lo) and math.isfinite(hi) and lo <= hi, n,
-                     getattr(self, n), "a finite (min, max) with min <= max")
-        _require(len(self.peaks) == 3 and all(math.isfinite(p) and p >= 0 for p in self.peaks),
+            r = getattr(self, n)
+            _require(_real_seq(r, 2) and r[0] <= r[1], n, r, "a finite (min, max) with min <= max")
+        _require(_real_seq(self.peaks, 3) and all(p >= 0 for p in self.peaks),
                  "peaks", self.peaks, "three finite numbers >= 0")
 
 
@@ -266,10 +323,8 @@ class EnvConfig:
 
     def __post_init__(self) -> None:
         for name, (lo, hi, unit) in BOUNDS.items():
-            v = getattr(self, name)
-            if not _is_real(v):
-                raise ValueError(f"{name}={v!r} is invalid: must be a real number")
-            _in_range(name, float(v), lo, hi, unit, lo_open=name in ("dt", "episode_s", "max_distance_m"))
+            _in_range(name, as_real(name, getattr(self, name)), lo, hi, unit,
+                      lo_open=name in ("dt", "episode_s", "max_distance_m"))
         _require(isinstance(self.physics_substeps, (int, np.integer)) and not isinstance(self.physics_substeps, bool)
                  and 1 <= self.physics_substeps <= MAX_SUBSTEPS, "physics_substeps", self.physics_substeps,
                  f"an integer in [1, {MAX_SUBSTEPS}]")
@@ -281,11 +336,11 @@ class EnvConfig:
                  self.episode_s, f"a positive multiple of dt={self.dt} s with at most {MAX_STEPS} steps")
         _require(self.steady_start_s < self.episode_s, "steady_start_s", self.steady_start_s,
                  f"less than episode_s={self.episode_s} s (else the steady-state window is empty)")
-        _require(len(self.force_limits) == 3 and all(
-            _is_real(f) and math.isfinite(f) and 0 < f <= MAX_FORCE for f in self.force_limits),
-            "force_limits", self.force_limits, f"three finite numbers in (0, {MAX_FORCE:g}] [N, N, N m]")
-        _require(len(self.p_d) == 2 and all(_is_real(v) and abs(v) <= MAX_OFFSET for v in self.p_d), "p_d",
+        _require(_real_seq(self.force_limits, 3) and all(0 < f <= MAX_FORCE for f in self.force_limits),
+                 "force_limits", self.force_limits, f"three finite numbers in (0, {MAX_FORCE:g}] [N, N, N m]")
+        _require(_real_seq(self.p_d, 2) and all(abs(v) <= MAX_OFFSET for v in self.p_d), "p_d",
                  self.p_d, f"two finite numbers in [-{MAX_OFFSET:g}, {MAX_OFFSET:g}] m")
+        _require(isinstance(self.nominal, VehicleParams), "nominal", self.nominal, "a VehicleParams")
         # RK4 stability: h * (fastest damping rate) well inside RK4's real-axis limit 2.78
         worst = 1.0 + max(self.mismatch, self.ranges.get("mismatch", (0.0, self.mismatch))[1])
         v = self.nominal
@@ -531,8 +586,8 @@ class Condition:
             if v is None and f.name == "current_direction_rad":
                 continue
             if not _is_real(v):
-                raise ValueError(f"{f.name}={v!r} is invalid: must be a real number [{f.unit}]")
-            v = float(v)
+                raise ValueError(f"{f.name}={_short(v)} is invalid: must be a real number [{f.unit}]")
+            v = as_real(f.name, v)
             if f.hi == math.inf:
                 _require(v > f.lo if f.lo_open else v >= f.lo, f.name, v, f"a number > {f.lo:g} [{f.unit}] or inf")
             else:
@@ -548,7 +603,7 @@ class Condition:
         for n in CURRENT_RANGE_FIELDS:
             r = getattr(self, n)
             if r is not None:
-                _require(len(r) == 2 and all(_is_real(x) and abs(x) <= 3.0 for x in r) and r[0] <= r[1], n, r,
+                _require(_real_seq(r, 2) and all(abs(x) <= 3.0 for x in r) and r[0] <= r[1], n, r,
                          "(min, max) with min <= max, each in [-3, 3] m/s")
 
     def as_dict(self) -> dict[str, object]:
@@ -567,13 +622,34 @@ OVERRIDES_V1: tuple[str, ...] = (tuple(f.name for f in CONDITION_FIELDS) + tuple
 RANGEABLE: tuple[str, ...] = tuple(f.name for f in CONDITION_FIELDS if f.name != "warmup_s") + ("mismatch",)
 
 
+#: the named arguments of the envs besides the overrides (named in the unknown-keyword message)
+ENV_ARGUMENTS: tuple[str, ...] = ("scenario", "disturbance", "render_mode", "sincos", "fast_math")
+#: the vector env's own arguments besides :data:`ENV_ARGUMENTS`
+VECTOR_ARGUMENTS: tuple[str, ...] = ("num_envs", "max_episode_steps", "parallel", "autoreset_mode")
+
+
+def unknown_keywords(unknown: list[str], allowed: tuple[str, ...], version: str = "v1") -> UnknownKeywordError:
+    """The error for keywords that are neither named arguments nor overrides (``allowed``)."""
+    extra = ""
+    if version == "v0" and set(unknown) & set(OVERRIDES_V1):
+        extra = " (the acoustic-link parameters exist only on the v1 ids, e.g. AUVFollow-Hard-v1 or AUVFollow-v1)"
+    # each name in the wording Python uses for a keyword a function does not take
+    what = " and an ".join(f"unexpected keyword argument {k!r}" for k in unknown)
+    return UnknownKeywordError(
+        f"got an {what}{extra}: valid keywords are the overrides {list(allowed)}, the envs' arguments "
+        f"{list(ENV_ARGUMENTS)} and the vector env's {list(VECTOR_ARGUMENTS)}")
+
+
 def _parse_overrides(overrides: Mapping[str, object], allowed: tuple[str, ...], version: str) -> dict:
+    """The overrides as checked numbers, tuples or choices; None values are left out (no override).
+
+    Raises:
+        UnknownKeywordError: a keyword not in ``allowed`` (a TypeError, and a ValueError).
+        ValueError: a value of the wrong type or too large for a float.
+    """
     unknown = sorted(set(overrides) - set(allowed))
     if unknown:
-        extra = ""
-        if version == "v0" and set(unknown) & set(OVERRIDES_V1):
-            extra = " (the acoustic-link parameters exist only on the v1 ids, e.g. AUVFollow-Hard-v1 or AUVFollow-v1)"
-        raise ValueError(f"unknown override(s) {unknown}{extra}: valid overrides are {list(allowed)}")
+        raise unknown_keywords(unknown, allowed, version)
     kw: dict = {}
     for k, v in overrides.items():
         if v is None:
@@ -584,11 +660,11 @@ def _parse_overrides(overrides: Mapping[str, object], allowed: tuple[str, ...], 
             v = as_real_tuple(k, v, 2)
         elif k == "physics_substeps":
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
-                raise ValueError(f"physics_substeps={v!r} is invalid: must be an integer in [1, {MAX_SUBSTEPS}]")
+                raise ValueError(f"physics_substeps={_short(v)} is invalid: must be an integer in [1, {MAX_SUBSTEPS}]")
             v = int(v)
         elif k in CONDITION_CHOICES:
             if not isinstance(v, str) or v not in CONDITION_CHOICES[k]:
-                raise ValueError(f"{k}={v!r} is invalid: must be one of {list(CONDITION_CHOICES[k])}")
+                raise ValueError(f"{k}={_short(v)} is invalid: must be one of {list(CONDITION_CHOICES[k])}")
         elif version == "v1" and k in RANGEABLE and isinstance(v, (tuple, list, np.ndarray)):
             lo, hi = as_real_tuple(k, v, 2)
             _require(lo <= hi, k, v, "a number or a (min, max) range with min <= max, drawn at every reset")
@@ -648,11 +724,16 @@ def make_config(scenario: str = "S4", disturbance: str | None = None, *, version
         **overrides: any of :data:`OVERRIDES` (``delay_s``, ``episode_s``, ``dt``,
             ``physics_substeps``, ``mismatch``, ``force_limits``, ``init_offset_m``,
             ``max_distance_m``, ``effort_weight``, ``p_d``, ``psi_d``, ``steady_start_s``),
-            and on v1 :data:`OVERRIDES_V1`. Numbers may be Python or numpy scalars; tuples
-            may be tuples, lists or arrays.
+            and on v1 :data:`OVERRIDES_V1`. Numbers may be Python or numpy scalars (not
+            bools); tuples may be tuples, lists or arrays. An override of ``None`` is no
+            override: the field keeps the preset's value (v1: the field's default, or the
+            range in ``ranges``).
 
     Raises:
-        ValueError: unknown scenario, level or override, or a value out of its range.
+        UnknownKeywordError: an override that does not exist (a ``TypeError`` naming it and
+            listing the valid ones; also a ``ValueError``).
+        ValueError: unknown scenario, level or version, a value of the wrong type, out of its
+            range or too large for a float, or ``ranges`` / ``tier`` on v0.
     """
     if not isinstance(scenario, str) or scenario not in SCENARIOS:
         raise ValueError(f"scenario={scenario!r} is unknown: valid scenarios are {sorted(SCENARIOS)}")
@@ -667,8 +748,21 @@ def make_config(scenario: str = "S4", disturbance: str | None = None, *, version
     kw = _parse_overrides(overrides, allowed, version)
     base: dict = {"delay_s": sc.delay_s, "mismatch": sc.mismatch}
     if version == "v0":
+        if ranges or tier is not None:
+            raise ValueError(f"ranges={ranges!r} / tier={tier!r} are invalid with version='v0': per-reset ranges "
+                             f"and tiers exist only on v1")
         return EnvConfig(scenario=sc, disturbance=DISTURBANCE_LEVELS[level], **{**base, **kw})
-    rng_map: dict[str, tuple[float, float]] = dict(ranges or {})
+    if ranges is not None and not isinstance(ranges, Mapping):
+        raise ValueError(f"ranges={_short(ranges)} is invalid: must be a mapping of field -> (min, max) or None")
+    if tier is not None and not isinstance(tier, str):
+        raise ValueError(f"tier={_short(tier)} is invalid: must be a tier's name or None")
+    rng_map: dict[str, tuple[float, float]] = {}
+    for k, r in (ranges or {}).items():
+        if k not in RANGEABLE:
+            raise ValueError(f"ranges has {k!r}: only {list(RANGEABLE)} can be drawn per reset")
+        lo, hi = as_real_tuple(f"ranges[{k!r}]", r, 2)
+        _require(lo <= hi, f"ranges[{k!r}]", r, "a (min, max) range with min <= max")
+        rng_map[k] = (lo, hi)
     cond_kw: dict = {}
     env_kw: dict = dict(base)
     for k, v in kw.items():
@@ -677,9 +771,6 @@ def make_config(scenario: str = "S4", disturbance: str | None = None, *, version
             continue
         rng_map.pop(k, None)  # a fixed value replaces the tier's range
         (env_kw if k in OVERRIDES else cond_kw)[k] = v
-    for k in rng_map:
-        if k not in RANGEABLE:
-            raise ValueError(f"ranges has {k!r}: only {list(RANGEABLE)} can be drawn per reset")
     dt = float(env_kw.get("dt", 0.05))
     defaults = _condition_defaults(sc, dt, float(env_kw["delay_s"]))
     for k, v in defaults.items():

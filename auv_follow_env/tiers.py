@@ -132,16 +132,23 @@ def make_tier_config(tier: str, disturbance: str | None = None, **overrides: obj
     """The :class:`EnvConfig` of ``AUVFollow-<tier>-v1`` with keyword overrides.
 
     An override with a number fixes that field for every episode; a ``(min, max)`` pair
-    replaces its range. Any v0 or v1 override is accepted (see ``make_config``).
+    replaces its range. Any v0 or v1 override is accepted (see ``make_config``). An override
+    of ``None`` is no override: the tier keeps its own fixed value or range for that field
+    (``loss_prob=None`` on Hard still draws the loss in [0.10, 0.25]); where the tier sets
+    none, the field's default applies as on ``AUVFollow-v1``.
 
     Raises:
-        ValueError: unknown tier or bad override.
+        UnknownKeywordError: an override that does not exist (a TypeError; also a ValueError).
+        ValueError: unknown tier or a bad override value.
     """
     if not isinstance(tier, str) or tier not in TIERS:
         raise ValueError(f"tier={tier!r} is unknown: valid tiers are {list(TIERS)}")
     t = TIERS[tier]
-    kw = {**t.fixed, **overrides}
-    ranges = {k: v for k, v in t.ranges.items() if k not in overrides}
+    # (a None for a field the tier does not set, or for an unknown keyword, goes on to make_config,
+    # which leaves the first out and refuses the second)
+    given = {k: v for k, v in overrides.items() if v is not None or (k not in t.fixed and k not in t.ranges)}
+    kw = {**t.fixed, **given}
+    ranges = {k: v for k, v in t.ranges.items() if k not in given}
     return make_config(t.scenario, disturbance if disturbance is not None else t.disturbance, version="v1",
                        ranges=ranges, tier=t.name, **kw)
 
@@ -196,7 +203,7 @@ def make_env_config(scenario: str = "S4", disturbance: str | None = None, *, ver
     if tier is not None:
         if version != "v1":
             raise ValueError(f"tier={tier!r} needs version='v1' (got version={version!r})")
-        own = TIERS[tier].scenario if tier in TIERS else None
+        own = TIERS[tier].scenario if isinstance(tier, str) and tier in TIERS else None
         if own is not None and scenario != own:
             raise ValueError(f"scenario={scenario!r} is invalid on the tier AUVFollow-{tier}-v1: its plant is "
                              f"{own!r}; for another scenario use AUVFollow-v1 (scenario=..., any link setting)")

@@ -102,6 +102,29 @@ def _check_seeds(seed: object, n: int) -> list[int | None]:
 
 _INFO_KEYS = ("tracking_error", "time", "true_target", "true_reference", "follower_pose")
 
+#: most envs in one vector env (each env holds about 15 kB of arrays: 2**24 envs are 250 GB)
+MAX_NUM_ENVS = 2**24
+
+
+def check_autoreset_mode(mode: object) -> AutoresetMode:
+    """``mode`` as an :class:`~gymnasium.vector.AutoresetMode`: a member, its value ("NextStep",
+    "SameStep", "Disabled") or its name ("NEXT_STEP", ...); ``None`` is the default NEXT_STEP.
+
+    Raises:
+        ValueError: anything else, naming the allowed values.
+    """
+    if mode is None:
+        return AutoresetMode.NEXT_STEP
+    if isinstance(mode, AutoresetMode):
+        return mode
+    if isinstance(mode, str):
+        for m in AutoresetMode:
+            if mode in (m.value, m.name):
+                return m
+    raise ValueError(f"autoreset_mode={mode!r} is invalid: must be a gymnasium.vector.AutoresetMode "
+                     f"({', '.join(f'{m.name} = {m.value!r}' for m in AutoresetMode)}: the member, its value or "
+                     f"its name) or None (NEXT_STEP)")
+
 
 class AUVFollowVectorEnv(VectorEnv):
     r"""``num_envs`` independent AUVFollow episodes stepped together by the numba kernels.
@@ -128,11 +151,30 @@ class AUVFollowVectorEnv(VectorEnv):
 
     ## Autoreset
 
-    ``metadata["autoreset_mode"] = AutoresetMode.NEXT_STEP`` (Gymnasium 1.x default): the
-    step after env ``i`` terminated or truncated resets it, ignoring its action, and returns
-    its first observation with reward 0 and ``terminated = truncated = False``. Episodes
-    truncate at ``episode_s`` (``config.n_steps`` steps) inside the env: vector envs have no
-    ``TimeLimit`` wrapper. After an env's autoreset its next episode is drawn from its
+    ``autoreset_mode`` (a keyword: ``gym.make_vec(id, num_envs=N, autoreset_mode=...)``;
+    Gymnasium passes keywords, not ``vector_kwargs``, to a registered vector entry point) is
+    the attribute ``autoreset_mode`` and ``metadata["autoreset_mode"]``, as on Gymnasium's own
+    vector envs. The episodes are the same in every mode (same seeds, same actions on each
+    episode's steps); only where the new episode starts differs:
+
+    * ``AutoresetMode.NEXT_STEP`` (default, Gymnasium 1.x's): the step after env ``i``
+      terminated or truncated resets it, ignoring its action, and returns its first
+      observation with reward 0 and ``terminated = truncated = False``.
+    * ``AutoresetMode.SAME_STEP`` (what TorchRL needs): an env that ends is reset within the
+      same step. That step returns its reward, ``terminated`` and ``truncated``, and the
+      **new** episode's first observation; the last observation of the ended episode is in
+      ``info["final_obs"]`` (an object array of N entries, ``None`` for the envs that did not
+      end) and the step's info of the ended envs in ``info["final_info"]`` (a dict like the
+      info below, with ``episode_metrics`` and on v1 ``link_stats``), each with its mask
+      ``_final_obs`` / ``_final_info``, as ``SyncVectorEnv`` gives them. The top-level info of an
+      env that was reset is its new episode's (on v1 with ``condition``).
+    * ``AutoresetMode.DISABLED``: nothing is reset by ``step``; reset the envs that ended with
+      ``reset(options={"reset_mask": terminated | truncated})`` before the next step (a step
+      with an ended env left raises ``RuntimeError`` and changes nothing).
+
+    Episodes truncate at ``episode_s`` (``config.n_steps`` steps) inside the env: vector envs have no
+    ``TimeLimit`` wrapper. After an env's autoreset (or a reset by mask without seeds under
+    DISABLED) its next episode is drawn from its
     generator and started (the target's and link's warm-up) ahead, together with other envs',
     and copied in at its next autoreset: the same episodes in the same order as drawing each at
     its reset (a reseeded env's early draw is dropped), at less cost per autoreset. The
@@ -169,7 +211,10 @@ class AUVFollowVectorEnv(VectorEnv):
     OpenMP workers sleep rather than spin when no core is free, and spin briefly (libgomp's
     default) when one is.
     ``sincos`` (default ``"simd"``; ``"libm"`` for glibc's sin/cos) and its former name
-    ``fast_math``: see :class:`~auv_follow_env.env.AUVFollowEnv`.
+    ``fast_math``: see :class:`~auv_follow_env.env.AUVFollowEnv`. ``num_envs`` is at most
+    :data:`MAX_NUM_ENVS`; a batch that does not fit in memory is a ``ValueError`` naming it. A
+    keyword that is neither an argument nor an override is a ``TypeError`` naming it
+    (:class:`~auv_follow_env.params.UnknownKeywordError`).
     """
 
     metadata = {"render_modes": [], "render_fps": 20, "autoreset_mode": AutoresetMode.NEXT_STEP}
@@ -177,10 +222,15 @@ class AUVFollowVectorEnv(VectorEnv):
     def __init__(self, num_envs: int = 1, scenario: str = "S4", disturbance: str | None = None,
                  render_mode: str | None = None, max_episode_steps: int | None = None,
                  parallel: bool | None = None, *, version: str = "v0", tier: str | None = None,
-                 sincos: str | None = None, fast_math: bool | None = None, **overrides: Any) -> None:
+                 sincos: str | None = None, fast_math: bool | None = None,
+                 autoreset_mode: AutoresetMode | str | None = None, **overrides: Any) -> None:
         sincos = check_sincos(sincos, fast_math)
-        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
-            raise ValueError(f"num_envs={num_envs!r} is invalid: must be an integer >= 1")
+        if isinstance(num_envs, (bool, np.bool_)) or not isinstance(num_envs, (int, np.integer)) \
+                or not 1 <= num_envs <= MAX_NUM_ENVS:
+            shown = repr(num_envs) if len(repr(num_envs)) <= 40 else f"{repr(num_envs)[:20]}..."
+            raise ValueError(f"num_envs={shown} is invalid: must be an integer in [1, {MAX_NUM_ENVS}]")
+        #: how envs that end are reset (:class:`~gymnasium.vector.AutoresetMode`; see the class docstring)
+        self.autoreset_mode = check_autoreset_mode(autoreset_mode)
         if render_mode is not None:
             raise ValueError(f"render_mode={render_mode!r} is not supported by the vector env: pass "
                              f"None (render a single AUVFollowEnv instead)")
@@ -194,13 +244,18 @@ class AUVFollowVectorEnv(VectorEnv):
         self.num_envs = int(num_envs)
         self.render_mode = None
         self.task_spec: TaskSpec = self.config.task_spec()
-        self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.config.dt))}
+        self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.config.dt)),
+                         "autoreset_mode": self.autoreset_mode}
         self.single_action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
         self.single_observation_space = spaces.Box(-np.inf, np.inf, (self.task_spec.obs_dim,), np.float32)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
 
-        self._sim = BatchSim(self.config, self.num_envs, sincos, draw_ahead=True)  # (its generators are ours)
+        try:
+            self._sim = BatchSim(self.config, self.num_envs, sincos, draw_ahead=True)  # (its generators are ours)
+        except MemoryError as exc:
+            raise ValueError(f"num_envs={self.num_envs} does not fit in this machine's memory ({exc}): "
+                             f"use fewer envs") from None
         #: how the step's sin/cos are computed: "simd" (default) or "libm" (the ``sincos`` keyword)
         self.sincos = sincos
         #: former name: ``sincos == "simd"``
@@ -236,7 +291,8 @@ class AUVFollowVectorEnv(VectorEnv):
             seed: ``None`` (keep each env's generator), an int ``s`` (env ``i`` gets
                 ``s + i``) or a list of N ints / ``None``.
             options: optionally ``{"reset_mask": bool array (N,)}``: reset only those envs
-                (as ``SyncVectorEnv``); the info masks mark them.
+                (as ``SyncVectorEnv``); the info masks mark them. Under
+                ``AutoresetMode.DISABLED`` this is how the envs that ended are reset.
 
         Returns:
             observations (N, 16) float32 and the info dict of arrays.
@@ -261,7 +317,9 @@ class AUVFollowVectorEnv(VectorEnv):
             if seeds[i] is not None or self._rngs[i] is None:
                 self._rngs[i] = seeding.np_random(seeds[i])[0]
         self._copy_truth()  # (the other envs keep their rows)
-        self._sim.reset(idx, [self._rngs[i] for i in idx])
+        # under DISABLED a reset by mask without seeds is the autoreset: start the next episodes ahead
+        auto = self.autoreset_mode is AutoresetMode.DISABLED and self._started and all(seeds[i] is None for i in idx)
+        self._sim.reset(idx, [self._rngs[i] for i in idx], auto=auto)
         self._autoreset[idx] = False
         self._autoreset_idx = np.flatnonzero(self._autoreset)
         self._started = True
@@ -280,12 +338,19 @@ class AUVFollowVectorEnv(VectorEnv):
             observations (N, 16) float32, rewards (N,) float64, terminated (N,) bool,
             truncated (N,) bool, info dict of arrays.
 
+        Under ``AutoresetMode.SAME_STEP`` the envs that end are reset before it returns (their
+        last observation and info in ``info["final_obs"]`` / ``info["final_info"]``); under
+        ``DISABLED`` they are not reset.
+
         Raises:
-            RuntimeError: before the first :meth:`reset`.
+            RuntimeError: before the first :meth:`reset`, or under ``DISABLED`` while an env that
+                ended has not been reset (nothing is changed).
             ValueError: NaN/inf, wrong shape or non-numeric actions (nothing is changed).
         """
         if not self._started:
             raise RuntimeError("call reset() before step()")
+        if self.autoreset_mode is not AutoresetMode.NEXT_STEP:
+            return self._step_now(actions)
         n = self.num_envs
         a = actions
         if type(a) is not np.ndarray or a.shape != (n, 3) or a.dtype not in _FAST_DTYPES \
@@ -342,6 +407,71 @@ class AUVFollowVectorEnv(VectorEnv):
             info["condition"], info["_condition"] = self._conditions(started)
         return sim.obs.copy(), rewards, terminated, truncated, info
 
+    def _step_now(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """One step under SAME_STEP (envs that end are reset at once) or DISABLED (they wait for
+        ``reset(options={"reset_mask": ...})``). No env is being autoreset when it starts, so every
+        env is stepped with its action; the physics is NEXT_STEP's."""
+        n = self.num_envs
+        same = self.autoreset_mode is AutoresetMode.SAME_STEP
+        if self._autoreset_idx.size:  # (only under DISABLED)
+            raise RuntimeError(
+                f"envs {self._autoreset_idx.tolist()} ended at the last step and were not reset: with "
+                f"autoreset_mode=DISABLED call reset(options={{'reset_mask': terminated | truncated}}) first "
+                f"(nothing was stepped)")
+        a = actions
+        if type(a) is not np.ndarray or a.shape != (n, 3) or a.dtype not in _FAST_DTYPES \
+                or not a.flags.c_contiguous:
+            a = check_action(a, (n, 3))
+        if a.dtype != np.float64:
+            a = a.astype(np.float64)  # (float32 -> float64 is exact; one compiled specialisation)
+        sim = self._sim
+        truth = np.empty_like(sim.truth)
+        args = self._args[:_TRUTH_ARG] + (truth,) + self._args[_TRUTH_ARG + 1:]
+        if self._parallel is not None:
+            bad = self._parallel[0](*args, a.reshape(-1), self._parallel[1])
+        else:
+            bad = self._kernel(*args, a.reshape(-1))
+        if bad >= 0:
+            raise ValueError(f"actions[{bad}]={np.asarray(a[bad]).tolist()} contains NaN or inf: "
+                             f"no env was changed")
+        sim.truth, self._args = truth, args
+        terminated = sim.term.copy()
+        truncated = sim.k >= self._n_steps
+        truncated &= ~terminated
+        rewards = sim.rew.copy()
+        done = terminated | truncated
+        if not done.any():
+            self._autoreset[:] = False
+            self._autoreset_idx = np.zeros(0, dtype=np.int64)
+            return sim.obs.copy(), rewards, terminated, truncated, self._info(None)
+        ended = {"episode_metrics": self._episode_metrics(done)}
+        if sim.v1:
+            ended["link_stats"] = self._link_stats(done)
+        if not same:  # DISABLED: the ended envs keep their last state until the caller resets them
+            self._autoreset = done
+            self._autoreset_idx = np.flatnonzero(done)
+            info = self._info(None)
+            for key, value in ended.items():
+                info[key], info["_" + key] = value, done.copy()
+            return sim.obs.copy(), rewards, terminated, truncated, info
+        # SAME_STEP: the ended episodes' last observation and info, then their resets
+        ids = np.flatnonzero(done)
+        final_obs = np.full(n, None, dtype=object)
+        for i in ids.tolist():
+            final_obs[i] = sim.obs[i].copy()
+        final_info = self._info(done, truth=truth.copy(), k=sim.k.copy())
+        for key, value in ended.items():
+            final_info[key], final_info["_" + key] = value, done.copy()
+        sim.reset(ids, [self._rngs[i] for i in ids], auto=True)
+        self._autoreset[:] = False
+        self._autoreset_idx = np.zeros(0, dtype=np.int64)
+        info = self._info(None)
+        info["final_obs"], info["_final_obs"] = final_obs, done.copy()
+        info["final_info"], info["_final_info"] = final_info, done.copy()
+        if sim.v1:
+            info["condition"], info["_condition"] = self._conditions(done)
+        return sim.obs.copy(), rewards, terminated, truncated, info
+
     def close_extras(self, **kwargs: Any) -> None:
         """Nothing to release (no renderer, no worker processes)."""
 
@@ -355,13 +485,15 @@ class AUVFollowVectorEnv(VectorEnv):
         sim.truth = sim.truth.copy()
         self._kernel, self._args = sim.step_call()
 
-    def _info(self, mask: np.ndarray | None) -> dict[str, Any]:
+    def _info(self, mask: np.ndarray | None, truth: np.ndarray | None = None,
+              k: np.ndarray | None = None) -> dict[str, Any]:
         """The per-step info arrays (views into the truth array of this step or reset, which the
-        sim does not write again)."""
+        sim does not write again; or into ``truth`` at steps ``k``, copies kept before a reset)."""
         sim = self._sim
-        truth = sim.truth
+        truth = sim.truth if truth is None else truth
+        k = sim.k if k is None else k
         info: dict[str, Any] = {
-            "tracking_error": truth[:, 12], "time": sim.k * self._dt, "true_target": truth[:, 3:9],
+            "tracking_error": truth[:, 12], "time": k * self._dt, "true_target": truth[:, 3:9],
             "true_reference": truth[:, 9:12], "follower_pose": truth[:, 0:3]}
         m = np.ones(self.num_envs, dtype=np.bool_) if mask is None else mask
         for key in _INFO_KEYS:

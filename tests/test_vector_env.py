@@ -323,7 +323,7 @@ def test_registered_for_every_id_and_arguments_validated():
         venv.close()
     with pytest.raises(ValueError, match="max_episode_steps=1200 disagrees"):
         _vec(2, {"episode_s": 2.0, "steady_start_s": 1.0, "max_episode_steps": 1200})
-    with pytest.raises(ValueError, match="unknown override"):
+    with pytest.raises(TypeError, match="unexpected keyword argument 'delay'"):
         _vec(2, {"delay": 1.0})
     with pytest.raises(ValueError, match="render_mode"):
         AUVFollowVectorEnv(num_envs=2, render_mode="rgb_array")
