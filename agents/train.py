@@ -169,7 +169,12 @@ def load_hyperparams(algo: str, env_id: str, path: str | Path | None = None,
     """Hyperparameters for ``algo`` on ``env_id`` from an rl-zoo3-format YAML file
     (``agents/hyperparams/<algo>.yml`` by default): the ``default`` section updated by the
     ``residual`` section (if ``mode="residual"`` and the file has one), then by the env id's
-    section, then by ``overrides``. Strings ``"dict(...)"`` are parsed (never evaluated)."""
+    section, then by ``overrides``. Strings ``"dict(...)"`` are parsed (never evaluated).
+
+    rl-zoo3 reads only the env id's section (else ``default``), so the shipped files start each
+    env id's section from the default with YAML's merge key (``<<: *default``); a value of the
+    env id's section equal to the default's counts as the default's, so the ``residual``
+    section still overrides it."""
     _algo_class(algo)
     path = Path(path) if path is not None else HYPERPARAMS_DIR / f"{algo}.yml"
     if not path.is_file():
@@ -180,10 +185,13 @@ def load_hyperparams(algo: str, env_id: str, path: str | Path | None = None,
                                               for k in ("default", "residual", env_id)):
         raise ValueError(f"hyperparameter file {path} is not in rl-zoo's format: expected a mapping of sections "
                          "(default, residual, <env id>) to mappings of hyperparameters")
-    hp = dict(table.get("default") or {})
+    default = dict(table.get("default") or {})
+    hp = dict(default)
     if mode == "residual":
         hp.update(table.get("residual") or {})
-    hp.update(table.get(env_id) or {})
+    own = {k: v for k, v in (table.get(env_id) or {}).items()
+           if k not in default or v != default[k] or type(v) is not type(default[k])}
+    hp.update(own)  # (the keys merged in from the default with "<<: *default" are left out)
     hp.update(overrides or {})
     return {k: _eval_zoo(v, k) for k, v in hp.items()}
 
