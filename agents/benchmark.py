@@ -32,6 +32,7 @@ and the HTML report all call :func:`benchmark` / :func:`leaderboard`):
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -54,7 +55,8 @@ import auv_follow_env  # noqa: F401  (registers the ids)
 __all__ = ["V0_TIERS", "V1_TIERS", "V0_TEST_SEEDS", "LEADERBOARD_METRICS", "PolicySpec", "BenchmarkResult",
            "resolve_tier", "tier_test_seeds", "default_test_seeds", "parse_policy", "iqm", "stratified_bootstrap_ci",
            "probability_of_improvement", "evaluate_tier", "leaderboard", "benchmark", "provenance",
-           "leaderboard_markdown", "plot_leaderboard", "goal_check", "load_result"]
+           "leaderboard_markdown", "plot_leaderboard", "goal_check", "load_result", "check_seed_list",
+           "check_labels", "benchmark_summary", "RESERVED_LABELS", "MAX_RESAMPLES"]
 
 V0_TIERS: tuple[str, ...] = ("S1", "S2", "S3", "S4")
 V1_TIERS: tuple[str, ...] = ("Easy", "Medium", "Hard", "Extreme")
@@ -66,9 +68,57 @@ LEADERBOARD_METRICS: tuple[str, ...] = ("true_steady_mean", "true_full_mean")
 #: every error metric (replaced by the loss threshold for terminated episodes)
 ERROR_METRICS: tuple[str, ...] = tuple(f"true_{w}_{s}" for w in ("full", "steady") for s in ("mean", "rmse", "max"))
 DEFAULT_RESAMPLES = 10_000
+#: most bootstrap resamples accepted (a million take minutes per row; more only waits longer)
+MAX_RESAMPLES = 1_000_000
 #: policy token standing for every registered scripted controller
 CLASSICAL = "classical"
 DEFAULT_BOOTSTRAP_SEED = 0
+#: leaderboard labels of the floors' reference rows (agents/floors.py): no policy may take them
+RESERVED_LABELS: tuple[str, ...] = ("control floor", "information floor")
+
+
+def _label_key(label: str) -> str:
+    return " ".join(str(label).split()).casefold()
+
+
+def check_labels(labels: Sequence[str]) -> None:
+    """Refuse a policy label that is one of :data:`RESERVED_LABELS` (compared without regard to
+    case or repeated spaces: the floors' rows would take the policy's episodes into theirs)."""
+    reserved = {_label_key(r) for r in RESERVED_LABELS}
+    bad = [x for x in labels if _label_key(x) in reserved]
+    if bad:
+        raise ValueError(f"policy label {bad[0]!r} is reserved for the floors' reference rows "
+                         f"{list(RESERVED_LABELS)}: give the policy another label (label=module:Class)")
+
+
+def check_seed_list(seeds: Any, name: str = "seeds") -> list[int]:
+    """``seeds`` as a list of distinct integers in [0, 2**63 - 1] (a seed list is a set of
+    episodes: a repeated seed would count one episode several times in every aggregate).
+
+    Raises:
+        ValueError: not a sequence of integers, empty, out of range or with a repeated seed
+            (names them).
+    """
+    from controllers.evaluation import MAX_SEED
+
+    if isinstance(seeds, (str, bytes)) or not isinstance(seeds, Iterable):
+        raise ValueError(f"{name}={seeds!r} is invalid: give a list of integers, e.g. [3000000, 3000001]")
+    out: list[int] = []
+    for x in seeds:
+        if isinstance(x, bool) or not isinstance(x, (int, np.integer)):
+            raise ValueError(f"{name} contains {x!r}: seeds must be integers in [0, 2**63 - 1]")
+        if not 0 <= int(x) <= MAX_SEED:
+            raise ValueError(f"{name} contains {int(x)}: seeds must be integers in [0, 2**63 - 1] "
+                             f"(the tables store 64-bit integers)")
+        out.append(int(x))
+    if not out:
+        raise ValueError(f"{name} is empty: give at least one seed")
+    if len(set(out)) != len(out):
+        seen: set[int] = set()
+        rep = sorted({x for x in out if x in seen or seen.add(x)})
+        raise ValueError(f"{name} repeats {rep[:10]}{' ...' if len(rep) > 10 else ''}: a seed list is a set of "
+                         f"episodes (a repeated seed would count one episode several times): give each seed once")
+    return out
 
 
 # --- statistics --------------------------------------------------------------------------
@@ -369,6 +419,10 @@ def _import_external(target: str) -> type:
     except ImportError as exc:
         raise ValueError(f"policy={target!r} is invalid: module {module!r} cannot be imported ({exc}); give "
                          "module.path:ClassName of an installed module or one under the current directory") from None
+    except Exception as exc:  # noqa: BLE001 (importing runs the user's module: it can raise anything)
+        text = " ".join(str(exc).split())[:300]
+        raise ValueError(f"policy={target!r}: importing module {module!r} raised {type(exc).__name__}"
+                         + (f": {text}" if text else "")) from exc
     finally:
         if added:
             sys.path.remove(cwd)
@@ -415,6 +469,44 @@ class _ObsPrefix:
         return self.policy.predict(obs, state=state, episode_start=episode_start, deterministic=deterministic)
 
 
+class _BatchProtocol:
+    """A user's controller as docs/benchmark.md describes it: ``predict`` always gets a batch
+    ``(n_envs, obs_dim)`` and returns ``(n_envs, 3)``. A single observation (the unbatched
+    evaluation, the replay episode of ``traces.parquet``) is passed as a batch of one and the
+    action of that one env returned; the optional ``reset()`` is called at the start of each
+    episode (``episode_start`` all true)."""
+
+    def __init__(self, policy: Any, label: str) -> None:
+        self.policy, self.name = policy, label
+        if callable(getattr(policy, "reference", None)):
+            self.reference = policy.reference
+
+    def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
+                deterministic: bool = True) -> tuple[Any, Any]:
+        obs = np.asarray(observation)
+        single = obs.ndim == 1
+        start = episode_start
+        if single:
+            obs = obs[None]
+            if start is not None:
+                start = np.asarray(start, dtype=bool).reshape(-1)[:1]
+        if start is not None and np.all(start) and callable(getattr(self.policy, "reset", None)):
+            try:
+                self.policy.reset()
+            except Exception as exc:  # noqa: BLE001 (a user's code can raise anything)
+                raise RuntimeError(f"reset() raised {type(exc).__name__}: {exc}") from exc
+        out = self.policy.predict(obs, state=state, episode_start=start, deterministic=deterministic)
+        if not single or not isinstance(out, tuple) or len(out) != 2:
+            return out
+        from controllers.evaluation import BadAction
+
+        action = np.asarray(out[0]) if not isinstance(out[0], np.ndarray) else out[0]
+        if action.shape != (1, 3):
+            raise BadAction(f"its action for a batch of one observation, shape (1, {obs.shape[1]}), has shape "
+                            f"{action.shape}: expected (1, 3) (docs/benchmark.md, 'Your own controller')")
+        return action[0], out[1]
+
+
 def _agent_obs_width(agent: Any) -> int:
     """Width of the raw env observation an agent was trained on."""
     from auv_follow_env.layout import OBS_DIM
@@ -441,7 +533,14 @@ def build_policy(spec: PolicySpec, run: str | None, env_id: str, task_spec: Any,
 
         return make_controller(spec.controller, task_spec)
     if spec.kind == "external":
-        return _import_external(spec.controller)(task_spec)
+        cls = _import_external(spec.controller)
+        try:
+            obj = cls(task_spec)
+        except Exception as exc:  # noqa: BLE001 (a user's constructor can raise anything)
+            text = " ".join(str(exc).split())[:300]
+            raise ValueError(f"policy {spec.label!r} on {env_id}: {spec.controller}(task_spec) raised "
+                             f"{type(exc).__name__}" + (f": {text}" if text else "")) from exc
+        return _BatchProtocol(obj, spec.label)
     from agents.train import load_agent
 
     agent = load_agent(run, name=spec.label)
@@ -570,13 +669,49 @@ def _write_atomic_parquet(d: pd.DataFrame, path: Path) -> None:
         raise
 
 
-def _entry_key(spec: PolicySpec, run: str | None, env_id: str, seeds: Sequence[int], code: str) -> str:
+def _external_fingerprint(target: str) -> str | None:
+    """A hash of the source of a user's ``module:Class``: every loaded module of its top-level
+    package (or the module alone), and the module that defines the class; None if a file cannot
+    be read (then its episodes are not cached). Code it imports from other packages is not
+    covered: clear the cache after editing that."""
+    import hashlib
+    import sys
+
+    cls = _import_external(target)
+    module = target.partition(":")[0]
+    names = {module, getattr(cls, "__module__", module)}
+    tops = {n.split(".")[0] for n in names}
+    names |= {n for n in list(sys.modules) if n.split(".")[0] in tops}
+    h = hashlib.sha256(target.encode())
+    for n in sorted(names):
+        mod = sys.modules.get(n)
+        path = getattr(mod, "__file__", None) if mod is not None else None
+        if not path:
+            if n in (module, cls.__module__):
+                return None
+            continue  # a namespace package has no file
+        try:
+            h.update(n.encode() + b"\0" + Path(path).read_bytes())
+        except OSError:
+            return None
+    return h.hexdigest()
+
+
+def _entry_key(spec: PolicySpec, run: str | None, env_id: str, seeds: Sequence[int], code: str) -> str | None:
+    """The cache key of one run's episodes (None: not cacheable)."""
     import hashlib
 
     h = hashlib.sha256()
     h.update(json.dumps({"env_id": env_id, "seeds": [int(x) for x in seeds], "kind": spec.kind,
                          "controller": spec.controller, "label": spec.label, "code": code,
                          "versions": _package_versions()}).encode())
+    if spec.kind == "external":
+        source = _external_fingerprint(spec.controller)
+        if source is None:
+            warnings.warn(f"policy {spec.label!r}: the source of {spec.controller} cannot be read, so its episodes "
+                          "are not cached", stacklevel=3)
+            return None
+        h.update(source.encode())
     if run is not None:
         for f in ("model.zip", "vecnormalize.json", "vecnormalize.pkl", "config.yaml"):
             fp = Path(run) / f
@@ -609,7 +744,8 @@ def evaluate_tier(policies: Sequence[PolicySpec], tier: str, seeds: Sequence[int
     from controllers.evaluation import evaluate, evaluate_batched
 
     name, env_id = resolve_tier(tier)
-    seeds = list(tier_test_seeds(name) if seeds is None else seeds)
+    seeds = tier_test_seeds(name) if seeds is None else check_seed_list(seeds, f"seeds of tier {name}")
+    check_labels([p.label for p in policies])
     probe = gym.make(env_id)
     task_spec = probe.unwrapped.task_spec
     obs_width = int(probe.observation_space.shape[0])
@@ -635,6 +771,8 @@ def evaluate_tier(policies: Sequence[PolicySpec], tier: str, seeds: Sequence[int
     cached: dict[int, pd.DataFrame] = {}
     if code:
         for i, k in enumerate(keys):
+            if k is None:
+                continue
             f = Path(cache_dir) / f"{k}.parquet"
             if f.is_file():
                 d = _read_cache_entry(f, labels[i], seeds)
@@ -650,7 +788,14 @@ def evaluate_tier(policies: Sequence[PolicySpec], tier: str, seeds: Sequence[int
         fresh = {i: evaluate(objs[i], env_id, seeds, policy_name=labels[i], progress=progress) for i in todo}
     if code:
         for i, d in fresh.items():
-            _write_atomic_parquet(d, Path(cache_dir) / f"{keys[i]}.parquet")
+            if keys[i] is None:
+                continue
+            try:
+                _write_atomic_parquet(d, Path(cache_dir) / f"{keys[i]}.parquet")
+            except OSError as exc:  # the cache only saves time: go on without it
+                warnings.warn(f"cache_dir={str(cache_dir)!r}: cannot store episodes there "
+                              f"({exc.strerror or type(exc).__name__}); continuing without the cache", stacklevel=2)
+                break
     df = pd.concat([cached[i] if i in cached else fresh[i] for i in range(len(entries))], ignore_index=True)
     df.insert(0, "env_id", env_id)
     df.insert(0, "tier", name)
@@ -732,6 +877,17 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
     missing = sorted(need - set(episodes.columns))
     if missing:
         raise ValueError(f"episodes lacks columns {missing}: give a table from evaluate_tier")
+    check_labels(sorted(set(episodes.loc[episodes["kind"] != "reference", "policy"].astype(str))))
+    kinds = episodes.groupby(["tier", "policy"], sort=False)["kind"].nunique()
+    if (kinds > 1).any():
+        (tier_, pol_), = kinds[kinds > 1].index[:1]
+        raise ValueError(f"episodes has policy {pol_!r} on tier {tier_!r} with several kinds "
+                         f"{sorted(set(episodes.loc[episodes['policy'] == pol_, 'kind']))}: one label per policy")
+    dup = episodes.duplicated(["tier", "policy", "run", "seed"]) if "seed" in episodes else None
+    if dup is not None and dup.any():
+        r = episodes[dup].iloc[0]
+        raise ValueError(f"episodes has seed {r['seed']} of policy {r['policy']!r} (run {r['run']!r}) on tier "
+                         f"{r['tier']!r} more than once: a seed list is a set of episodes")
     if not metrics:
         raise ValueError("metrics is empty: give at least one metric column")
     m0 = metrics[0]
@@ -812,6 +968,45 @@ def goal_check(board: pd.DataFrame, tier: str = "Hard", metric: str = "true_stea
             "classical_ci": (float(c[f"{metric}_iqm_lo"]), float(c[f"{metric}_iqm_hi"])),
             "change_pct": 100.0 * change, "cis_separated": separated,
             "met": bool(change <= -reduction and separated)}
+
+
+def _goal_words(g: Mapping[str, Any]) -> str:
+    verdict = "met" if g["met"] else "not met"
+    return (f"goal (best learned >= 30 % below the best classical, CIs apart) {verdict}: {g['best_learned']} "
+            f"{g['change_pct']:+.1f} % vs {g['best_classical']}, CIs {'apart' if g['cis_separated'] else 'overlap'}")
+
+
+def benchmark_summary(board: pd.DataFrame, files: Mapping[str, Path] | None = None, *, top: int = 5,
+                      metric: str = "true_steady_mean") -> str:
+    """A few lines for the terminal: per tier the ``top`` policies by the IQM of ``metric``
+    (label, IQM with its 95 % CI, kind), the goal check in words where the tier has a learned
+    and a classical policy, and where the full files are."""
+    def one_line(x: Any, width: int = 48) -> str:
+        text = " ".join(str(x).split())
+        return text if len(text) <= width else text[: width - 3] + "..."
+
+    lines = []
+    for tier, sub in board.groupby("tier", sort=False):
+        sub = sub.sort_values(f"{metric}_iqm", kind="stable")
+        best = sub["best_classical"].iloc[0] if "best_classical" in sub else None
+        head = f"{one_line(tier)}: {len(sub)} policies by {metric.replace('true_', '')} error IQM [95 % CI] in m"
+        lines.append(head + (f"; best classical {one_line(best)}" if isinstance(best, str) and best else ""))
+        shown = sub.head(top)
+        width = max(len(one_line(p)) for p in shown["policy"])
+        for rank, (_, r) in enumerate(shown.iterrows(), 1):
+            ci = _fmt_ci(r[f"{metric}_iqm"], r[f"{metric}_iqm_lo"], r[f"{metric}_iqm_hi"])
+            lines.append(f"  {rank}. {one_line(r['policy']):<{width}}  {ci}  ({one_line(r['kind'], 12)})")
+        if len(sub) > top:
+            lines.append(f"  ... {len(sub) - top} more in the full table")
+        g = goal_check(board, str(tier), metric)
+        if g["met"] is not None:
+            lines.append("  " + _goal_words(g))
+    if files:
+        md = files.get("leaderboard_md")
+        rest = [Path(p).name for k, p in files.items() if k != "leaderboard_md"]
+        lines.append(f"full table: {md}" + (f" (and {', '.join(rest)} beside it)" if rest else "")
+                     if md is not None else f"written: {', '.join(str(p) for p in files.values())}")
+    return "\n".join(lines)
 
 
 # --- provenance and output ---------------------------------------------------------------
@@ -996,7 +1191,13 @@ def replay_traces(specs: Sequence[PolicySpec], seed_map: Mapping[str, Sequence[i
                 pol = build_policy(spec, spec.runs[0] if spec.runs else None, env_id, task_spec, width)
             except IncompatiblePolicy:
                 continue
-            df = rollout_episode(pol, env_id, int(seeds[0]))
+            try:
+                df = rollout_episode(pol, env_id, int(seeds[0]))
+            except Exception as exc:  # noqa: BLE001 (a user's controller can raise anything)
+                text = " ".join(str(exc).split())[:300]
+                raise ValueError(f"policy {spec.label!r} on {name} ({env_id}), seed {int(seeds[0])}: recording its "
+                                 f"replay episode (traces.parquet) failed: {type(exc).__name__}"
+                                 + (f": {text}" if text else "")) from exc
             df.insert(0, "seed", int(seeds[0]))
             df.insert(0, "policy", spec.label)
             df.insert(0, "tier", name)
@@ -1008,32 +1209,116 @@ def replay_traces(specs: Sequence[PolicySpec], seed_map: Mapping[str, Sequence[i
     return out.astype({c: np.float32 for c in floats})  # plotted only: half the file size
 
 
-def write_outputs(out: Path, episodes: pd.DataFrame, board: pd.DataFrame, prov: Mapping[str, Any],
-                  traces: pd.DataFrame) -> dict[str, Path]:
-    """Write the benchmark files into ``out``: all of them into a temporary folder inside
-    ``out`` first, then each renamed into place (an interruption while writing leaves the
-    previous files untouched; :func:`load_result` refuses a folder whose files disagree)."""
+class OutputWriteError(OSError):
+    """A set of output files could not be written (full disk, no permission); the previous
+    files in the folder are kept (the message names the folder and the reason)."""
+
+
+@contextlib.contextmanager
+def _sigint_deferred():
+    """Hold back SIGINT (Ctrl-C) inside the block: it is delivered when the block ends (main
+    thread on POSIX; elsewhere the block runs as it is)."""
+    import signal
+    import threading
+
+    block = hasattr(signal, "pthread_sigmask") and threading.current_thread() is threading.main_thread()
+    if block:
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        if block:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def replace_set(stage: Path, out: Path, names: Sequence[str]) -> dict[str, Path]:
+    """Move the files ``names`` from ``stage`` into ``out`` as one set: the files of the same
+    names already in ``out`` are moved aside first and put back if any move fails or is
+    interrupted, so ``out`` holds either the previous set or the complete new one, never a mix.
+    Ctrl-C is held back while the files move. ``stage`` must be on the file system of ``out``.
+
+    Returns:
+        ``{name: out / name}``.
+
+    Raises:
+        OutputWriteError: a move failed (the previous set is back in place; if even that
+            failed, the message says where the previous files are).
+    """
     import os
     import shutil
     import tempfile
 
-    out.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=".benchmark-partial-", dir=out))
+    aside = Path(tempfile.mkdtemp(prefix=".benchmark-previous-", dir=out))
+    moved: list[str] = []
+    placed: list[str] = []
+    with _sigint_deferred():
+        try:
+            for name in names:
+                if os.path.lexists(out / name):
+                    os.replace(out / name, aside / name)
+                    moved.append(name)
+            for name in names:
+                os.replace(stage / name, out / name)
+                placed.append(name)
+        except BaseException as exc:
+            lost = []
+            for name in placed:
+                try:
+                    os.replace(out / name, stage / name)
+                except OSError:
+                    lost.append(name)
+            for name in moved:
+                try:
+                    os.replace(aside / name, out / name)
+                except OSError:
+                    lost.append(name)
+            if lost:
+                raise OutputWriteError(f"{out}: writing the new files failed ({_first_line(exc)}) and putting the "
+                                       f"previous ones back failed too: they are in {aside}") from exc
+            shutil.rmtree(aside, ignore_errors=True)
+            if isinstance(exc, OSError):
+                raise OutputWriteError(f"cannot write into {out} ({exc.strerror or _first_line(exc)}): its previous "
+                                       "files are kept") from exc
+            raise
+    shutil.rmtree(aside, ignore_errors=True)
+    return {name: out / name for name in names}
+
+
+def write_outputs(out: Path, episodes: pd.DataFrame, board: pd.DataFrame, prov: Mapping[str, Any],
+                  traces: pd.DataFrame) -> dict[str, Path]:
+    """Write the benchmark files into ``out``: all of them into a temporary folder inside
+    ``out`` first, then moved into place as one set (:func:`replace_set`: an interruption or a
+    failure at any point leaves the previous files, all of them; :func:`load_result` refuses a
+    folder whose files disagree).
+
+    Raises:
+        OutputWriteError: a file could not be written (full disk, no permission): nothing in
+            ``out`` was changed.
+    """
+    import shutil
+    import tempfile
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=".benchmark-partial-", dir=out))
+    except OSError as exc:
+        raise OutputWriteError(f"cannot write into {out} ({exc.strerror or _first_line(exc)})") from exc
     try:
         staged = {k: stage / name for k, name in OUTPUT_FILES.items()}
-        _write_parquet(episodes, staged["episodes"], prov)
-        _write_csv(board, staged["leaderboard_csv"], prov)
-        staged["leaderboard_md"].write_text(leaderboard_markdown(board, prov) + "\n")
-        plot_leaderboard(board, staged["leaderboard_png"], prov=prov)
-        _write_parquet(traces, staged["traces"], prov)
-        staged["provenance"].write_text(json.dumps(prov, indent=1, default=str) + "\n")
-        files = {}
-        for k, name in OUTPUT_FILES.items():
-            os.replace(staged[k], out / name)
-            files[k] = out / name
+        try:
+            _write_parquet(episodes, staged["episodes"], prov)
+            _write_csv(board, staged["leaderboard_csv"], prov)
+            staged["leaderboard_md"].write_text(leaderboard_markdown(board, prov) + "\n")
+            plot_leaderboard(board, staged["leaderboard_png"], prov=prov)
+            _write_parquet(traces, staged["traces"], prov)
+            staged["provenance"].write_text(json.dumps(prov, indent=1, default=str) + "\n")
+        except OSError as exc:
+            raise OutputWriteError(f"cannot write into {out} ({exc.strerror or _first_line(exc)}): its previous "
+                                   "files are kept") from exc
+        placed = replace_set(stage, out, list(OUTPUT_FILES.values()))
+        return {k: placed[name] for k, name in OUTPUT_FILES.items()}
     finally:
         shutil.rmtree(stage, ignore_errors=True)
-    return files
 
 
 def _prov_key(prov: Any) -> str:
@@ -1163,7 +1448,13 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
     dup = sorted({x for x in labels if labels.count(x) > 1})
     if dup:
         raise ValueError(f"policies has duplicate labels {dup}: give each method once (use label=run,run)")
-    tiers = [resolve_tier(t)[0] for t in tiers]
+    check_labels(labels)
+    if isinstance(n_resamples, bool) or not isinstance(n_resamples, (int, np.integer)) or \
+            not 1 <= n_resamples <= MAX_RESAMPLES:
+        raise ValueError(f"n_resamples={n_resamples!r} is invalid: must be an integer in [1, {MAX_RESAMPLES}]")
+    if isinstance(bootstrap_seed, bool) or not isinstance(bootstrap_seed, (int, np.integer)) or bootstrap_seed < 0:
+        raise ValueError(f"bootstrap_seed={bootstrap_seed!r} is invalid: must be an integer >= 0")
+    tiers = [resolve_tier(t)[0] for t in ([tiers] if isinstance(tiers, str) else tiers)]
     if not tiers:
         raise ValueError(f"tiers is empty: give at least one of {available_tiers()}")
     seed_map: dict[str, list[int]] = {}
@@ -1171,9 +1462,9 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
         if seeds is None:
             seed_map[t] = tier_test_seeds(t)
         elif isinstance(seeds, Mapping):
-            seed_map[t] = list(seeds[t]) if t in seeds else tier_test_seeds(t)
+            seed_map[t] = check_seed_list(seeds[t], f"seeds[{t!r}]") if t in seeds else tier_test_seeds(t)
         else:
-            seed_map[t] = list(seeds)
+            seed_map[t] = check_seed_list(seeds)
     frames = [evaluate_tier(specs, t, seed_map[t], batched=batched, progress=progress, cache_dir=cache_dir)
               for t in tqdm(tiers, desc="tiers", disable=not progress)]
     if floors:  # reference rows, not competitors (agents/floors.py)

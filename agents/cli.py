@@ -101,6 +101,7 @@ def _positive_float(text: str) -> float:
 
 
 MAX_SEEDS = 100_000  #: bound of the number of seeds of one --seeds argument
+MAX_SEED = 2**63 - 1  #: largest seed (the result tables store 64-bit integers; controllers.evaluation.MAX_SEED)
 
 
 def _seeds(text: str) -> list[int]:
@@ -120,6 +121,14 @@ def _seeds(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"{text!r} is not a seed list: use e.g. 1000-1009 or 1,2,3") from None
     if not out or min(out) < 0 or len(out) > MAX_SEEDS:
         raise argparse.ArgumentTypeError(f"{text!r} gives no seeds or a negative one: use e.g. 1000-1009 or 1,2,3")
+    if max(out) > MAX_SEED:
+        raise argparse.ArgumentTypeError(f"{text!r} has seed {max(out)}: seeds must be in [0, 2**63 - 1] "
+                                         f"(= {MAX_SEED})")
+    if len(set(out)) != len(out):
+        seen: set[int] = set()
+        rep = sorted({x for x in out if x in seen or seen.add(x)})
+        raise argparse.ArgumentTypeError(f"{text!r} repeats seed(s) {rep[:10]}: a seed list is a set of episodes, "
+                                         "give each seed once")
     return out
 
 
@@ -293,9 +302,33 @@ def _evaluate(args: argparse.Namespace) -> None:
     print(df[cols].to_string(index=False))
     print(f"mean true steady-state mean error: {df['true_steady_mean'].mean():.4f} m")
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        df.to_csv(args.out, index=False)
+        _write_csv_atomic(df, Path(args.out))
         print(f"wrote {args.out}")
+
+
+def _write_csv_atomic(df: Any, path: Path) -> None:
+    """``df.to_csv(path)`` through a temporary file beside it and a rename: a failed or
+    interrupted write leaves the previous file (and no temporary one)."""
+    import tempfile
+
+    from agents.benchmark import OutputWriteError
+
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
+        with os.fdopen(fd, "w") as f:
+            df.to_csv(f, index=False)
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)  # as a plain open would create it (mkstemp makes it private)
+        os.replace(tmp, path)
+        tmp = None
+    except OSError as exc:
+        raise OutputWriteError(f"cannot write {path} ({exc.strerror or exc}): the previous file is kept") from exc
+    finally:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
 
 
 def _compare(args: argparse.Namespace) -> None:
@@ -340,6 +373,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except TrainingInterrupted as exc:
         print(f"auv-follow train: interrupted; run directory: {exc.run}", file=sys.stderr)
         return 130
+    except OSError as exc:  # a write failed (full disk, read-only file system)
+        print(f"auv-follow {args.command}: error: {_os_error_text(exc)}", file=sys.stderr)
+        raise SystemExit(1) from None
     except KeyboardInterrupt:
         print(f"auv-follow {args.command}: interrupted", file=sys.stderr)
         return 130
@@ -350,7 +386,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _add_benchmark_commands(sub: Any) -> None:
     """The ``benchmark``, ``report`` and ``sweep`` subcommands (each sets ``handler``)."""
-    from agents.benchmark import DEFAULT_RESAMPLES
+    from agents.benchmark import DEFAULT_RESAMPLES, MAX_RESAMPLES
+
+    def _resamples(text: str) -> int:
+        return _integer(text, 1, MAX_RESAMPLES)
 
     b = sub.add_parser("benchmark", help="score policies on the tiers' test seeds: per-episode table + leaderboard",
                        formatter_class=_Formatter, epilog=_TRUST,
@@ -372,8 +411,8 @@ def _add_benchmark_commands(sub: Any) -> None:
     b.add_argument("--out", default=None,
                    help=f"output directory (default: {SCRATCH_BENCH}, ignored by git; the committed leaderboard in "
                         "results/benchmark is rewritten only when you give --out results/benchmark)")
-    b.add_argument("--resamples", type=_positive_int, default=DEFAULT_RESAMPLES, help="bootstrap resamples",
-                   metavar="N")
+    b.add_argument("--resamples", type=_resamples, default=DEFAULT_RESAMPLES,
+                   help=f"bootstrap resamples, at most {MAX_RESAMPLES}", metavar="N")
     b.add_argument("--bootstrap-seed", type=_nonneg_int, default=0, help="seed of the bootstrap resampling")
     b.add_argument("--unbatched", dest="batched", action="store_false",
                    help="one single-env episode at a time instead of one native vector env")
@@ -408,7 +447,8 @@ def _add_benchmark_commands(sub: Any) -> None:
                    help="experiment name, one path component: the folder inside --storage and the resume key "
                         "(default: the config's name, else auv-follow-sweep)")
     s.add_argument("--storage", default=None,
-                   help="directory of the Ray Tune experiment (default: the config's storage, else results/sweeps)")
+                   help="directory of the Ray Tune experiment (default: the config's storage, else "
+                        "results/tmp/sweeps, ignored by git)")
     s.add_argument("--address", default=None, help="existing Ray cluster (default: RAY_ADDRESS or local Ray)")
     s.add_argument("--timesteps", type=_positive_int, default=None,
                    help="env steps per trial (default: the config's, else 20000)")
@@ -426,20 +466,19 @@ def _add_benchmark_commands(sub: Any) -> None:
 def _cmd_benchmark(args: argparse.Namespace) -> None:
     import shlex
 
-    from agents.benchmark import benchmark, goal_check
+    from agents.benchmark import benchmark, benchmark_summary
 
     if args.out is None:
         args.out = SCRATCH_BENCH
         print(f"writing to {SCRATCH_BENCH} (ignored by git); give --out to choose the place", file=sys.stderr)
     _check_writable(Path(args.out), "--out", want_dir=True)
+    if args.cache_dir is not None:
+        _check_writable(Path(args.cache_dir), "--cache", want_dir=True)
     res = benchmark(args.policies, args.tiers, seeds=args.seeds, out_dir=args.out, n_resamples=args.resamples,
                     bootstrap_seed=args.bootstrap_seed, batched=args.batched, progress=args.progress,
                     cache_dir=args.cache_dir, floors=args.floors,
                     command="auv-follow " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["benchmark"] else None)
-    print(res.files["leaderboard_md"].read_text() if res.files else res.leaderboard.to_string())
-    if "Hard" in set(res.leaderboard["tier"]):
-        print(goal_check(res.leaderboard))
-    print(f"written: {', '.join(str(p) for p in res.files.values())}")
+    print(benchmark_summary(res.leaderboard, res.files))
 
 
 def _cmd_report(args: argparse.Namespace) -> None:
@@ -453,7 +492,7 @@ def _cmd_report(args: argparse.Namespace) -> None:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> None:
-    from agents.sweep import SweepConfig, SweepFailed, sweep
+    from agents.sweep import SweepConfig, SweepFailed, SweepUnavailable, sweep
 
     try:
         cfg = SweepConfig.from_args(args)
@@ -461,6 +500,9 @@ def _cmd_sweep(args: argparse.Namespace) -> None:
         raise _Refused("--config", str(exc)) from None
     try:
         best = sweep(cfg)
+    except SweepUnavailable as exc:  # the sweep extra is not installed
+        print(f"auv-follow sweep: error: {exc}", file=sys.stderr)
+        raise SystemExit(1) from None
     except SweepFailed as exc:
         print(f"auv-follow sweep: error: {exc}", file=sys.stderr)
         raise SystemExit(1) from None
@@ -469,6 +511,16 @@ def _cmd_sweep(args: argparse.Namespace) -> None:
         print(f"auv-follow sweep: {best.attrs['errors']} trial(s) failed: run the same command again to resume them",
               file=sys.stderr)
         raise SystemExit(1)
+
+
+def _os_error_text(exc: OSError) -> str:
+    """One line for a failed file operation: the message, or the reason and the file."""
+    from agents.benchmark import OutputWriteError
+
+    if isinstance(exc, OutputWriteError) or not exc.strerror:
+        return " ".join(str(exc).split())
+    name = f": {exc.filename}" if exc.filename else ""
+    return f"{exc.strerror}{name}"
 
 
 def _run_handler(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
@@ -484,8 +536,13 @@ def _run_handler(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         msg = " ".join(str(exc).split())
         print(f"auv-follow {args.command}: error: {msg}", file=sys.stderr)
         raise SystemExit(2) from None
+    except OSError as exc:  # a write failed (full disk, read-only file system): nothing half-written is kept
+        print(f"auv-follow {args.command}: error: {_os_error_text(exc)}", file=sys.stderr)
+        raise SystemExit(1) from None
     except KeyboardInterrupt:
-        print(f"auv-follow {args.command}: interrupted (nothing half-written was kept)", file=sys.stderr)
+        # benchmark and report replace their files as one set (agents.benchmark.replace_set, report's rename)
+        tail = "run the same command again to resume" if args.command == "sweep" else "nothing half-written was kept"
+        print(f"auv-follow {args.command}: interrupted ({tail})", file=sys.stderr)
         return 130
     except MemoryError:
         print(f"auv-follow {args.command}: error: out of memory: use fewer seeds or policies", file=sys.stderr)

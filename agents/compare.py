@@ -58,8 +58,15 @@ def compare(agents: Sequence[Agent | str | Path] = (), env_id: str = "AUVFollow-
     for n in names:
         if n not in ALL_CONTROLLERS:
             raise ValueError(f"controller={n!r} is unknown: valid controllers are {list(ALL_CONTROLLERS)}")
-    seeds = list(seeds)
+    from agents.benchmark import check_seed_list
+
+    seeds = check_seed_list(seeds)  # distinct: a repeated seed would count an episode twice in the means
     loaded = [a if isinstance(a, Agent) else load_agent(a) for a in agents]  # every path checked before any work
+    labels = names + [a.name for a in loaded]
+    dup = sorted({x for x in labels if labels.count(x) > 1})
+    if dup:
+        raise ValueError(f"policy names {dup} occur more than once (an agent named like a controller, or two agents "
+                         "of one name): their episodes would be merged in the summary; rename a run directory")
     if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise ValueError(f"out_dir={str(out_dir)!r} is invalid: it exists and is not a directory")
     probe = gym.make(env_id, **(env_kwargs or {}))
@@ -73,13 +80,41 @@ def compare(agents: Sequence[Agent | str | Path] = (), env_id: str = "AUVFollow-
     per_episode = pd.concat(frames, ignore_index=True)
     summary = summarize(per_episode, reference=reference)
     if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        per_episode.to_csv(out / f"{name}.csv", index=False)
-        summary.to_csv(out / f"{name}_summary.csv")
-        (out / f"{name}.md").write_text(summary_markdown(summary, env_id, seeds) + "\n")
-        plot_summary(per_episode, out / f"{name}.png", title=f"{env_id}, seeds {seeds[0]}-{seeds[-1]}")
+        _write_outputs(Path(out_dir), name, per_episode, summary, env_id, seeds)
     return per_episode, summary
+
+
+def _write_outputs(out: Path, name: str, per_episode: pd.DataFrame, summary: pd.DataFrame, env_id: str,
+                   seeds: Sequence[int]) -> None:
+    """The four files, written into a temporary folder inside ``out`` and moved into place as
+    one set (:func:`agents.benchmark.replace_set`): a failure or Ctrl-C leaves the previous set.
+
+    Raises:
+        agents.benchmark.OutputWriteError: a file could not be written (nothing in ``out`` changed).
+    """
+    import shutil
+    import tempfile
+
+    from agents.benchmark import OutputWriteError, replace_set
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=f".{name}-partial-", dir=out))
+    except OSError as exc:
+        raise OutputWriteError(f"cannot write into {out} ({exc.strerror or exc})") from exc
+    files = [f"{name}.csv", f"{name}_summary.csv", f"{name}.md", f"{name}.png"]
+    try:
+        try:
+            per_episode.to_csv(stage / files[0], index=False)
+            summary.to_csv(stage / files[1])
+            (stage / files[2]).write_text(summary_markdown(summary, env_id, seeds) + "\n")
+            plot_summary(per_episode, stage / files[3], title=f"{env_id}, seeds {seeds[0]}-{seeds[-1]}")
+        except OSError as exc:
+            raise OutputWriteError(f"cannot write into {out} ({exc.strerror or exc}): its previous files are "
+                                   "kept") from exc
+        replace_set(stage, out, files)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 def summarize(per_episode: pd.DataFrame, reference: str | None = "PROPOSED") -> pd.DataFrame:

@@ -86,18 +86,17 @@ def _check_tier(tier: object) -> str:
 
 
 def _check_seeds(seeds: Iterable[int] | None, tier: str) -> list[int]:
+    from agents.benchmark import check_seed_list
     from auv_follow_env.tiers import TIERS
 
     if seeds is None:
         return list(TIERS[tier].test_seeds)
-    out = []
-    for s in seeds:
-        if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 0:
-            raise ValueError(f"seeds contains {s!r}: seeds must be non-negative integers")
-        out.append(int(s))
-    if not out:
+    if isinstance(seeds, (str, bytes)) or not isinstance(seeds, Iterable):
+        raise ValueError(f"seeds={seeds!r} is invalid: give a list of integers (None: the tier's published test seeds)")
+    seeds = list(seeds)
+    if not seeds:
         raise ValueError("seeds is empty: give at least one seed (None: the tier's published test seeds)")
-    return out
+    return check_seed_list(seeds)  # distinct integers in [0, 2**63 - 1]: a repeat would count an episode twice
 
 
 # --- control floor -----------------------------------------------------------------------

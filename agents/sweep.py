@@ -46,7 +46,8 @@ import numpy as np
 import pandas as pd
 import yaml
 
-__all__ = ["SweepConfig", "SweepFailed", "sweep", "run_trial", "VALIDATION_SEEDS", "DEFAULT_GRID", "param_space"]
+__all__ = ["SweepConfig", "SweepFailed", "SweepUnavailable", "sweep", "run_trial", "VALIDATION_SEEDS", "DEFAULT_GRID",
+           "param_space"]
 
 #: validation seeds of every tier (our choice: 900-919; test seeds are published separately
 #: and checked to be disjoint, training envs start at seed + i for small seeds)
@@ -69,7 +70,7 @@ class SweepConfig:
     num_samples: int = 1  #: samples of the search space per grid point
     validation_seeds: list[int] = field(default_factory=lambda: list(VALIDATION_SEEDS))  #: evaluation seeds
     name: str = "auv-follow-sweep"  #: experiment name (the resume key)
-    storage: str = "results/sweeps"  #: parent directory of the experiment
+    storage: str = "results/tmp/sweeps"  #: parent directory of the experiment (default: ignored by git)
     address: str | None = None  #: Ray cluster address (None: RAY_ADDRESS, else local Ray)
     cpus_per_trial: float = 1.0  #: Tune resources per trial
     max_failures: int = 0  #: automatic retries of a failed trial (from its last checkpoint)
@@ -261,9 +262,13 @@ def sweep(cfg: SweepConfig) -> pd.DataFrame:
     Raises:
         ValueError: invalid configuration (names the field).
         SweepFailed: every trial failed.
+        SweepUnavailable: Ray Tune is not installed.
     """
     cfg.validate()
-    from ray import tune
+    try:
+        from ray import tune
+    except ImportError:
+        raise SweepUnavailable('Ray Tune is not installed: pip install -e ".[sweep]"') from None
 
     storage = cfg.storage if "://" in cfg.storage else str(Path(cfg.storage).resolve())
     exp = Path(storage) / cfg.name
@@ -310,3 +315,7 @@ def sweep(cfg: SweepConfig) -> pd.DataFrame:
 
 class SweepFailed(RuntimeError):
     """Every trial of a sweep failed (the message has the first error)."""
+
+
+class SweepUnavailable(ImportError):
+    """Ray Tune, the ``sweep`` extra, is not installed (the message says how to install it)."""

@@ -26,7 +26,7 @@ from auv_follow_env.metrics import METRIC_KEYS, tracking_metrics
 from auv_follow_env.params import TaskSpec
 
 __all__ = ["evaluate", "evaluate_controllers", "evaluate_batched", "check_task_spec", "METRIC_COLUMNS",
-           "TRAJECTORY_COLUMNS", "SPEC_FIELDS"]
+           "TRAJECTORY_COLUMNS", "SPEC_FIELDS", "MAX_SEED", "PolicyError", "BadAction"]
 
 METRIC_COLUMNS: tuple[str, ...] = tuple(f"{ref}_{k}" for ref in ("true", "own") for k in METRIC_KEYS)
 TRAJECTORY_COLUMNS: tuple[str, ...] = (
@@ -79,15 +79,81 @@ def _bar(iterable: Iterable, desc: str, progress: bool, nested: bool = False, **
                 ascii=not tty, **kw)
 
 
+#: largest seed accepted: the result tables store seeds as 64-bit integers
+MAX_SEED = 2**63 - 1
+
+
 def _check_seeds(seeds: Iterable[int]) -> list[int]:
+    if isinstance(seeds, (str, bytes)):
+        raise ValueError(f"seeds={seeds!r} is invalid: give a list of integers, e.g. [1000, 1001]")
     out = []
     for s in seeds:
-        if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 0:
-            raise ValueError(f"seeds must be non-negative integers, got {s!r}")
+        if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or not 0 <= s <= MAX_SEED:
+            raise ValueError(f"seeds must be integers in [0, 2**63 - 1], got {s!r}")
         out.append(int(s))
     if not out:
         raise ValueError("seeds is empty: give at least one seed")
     return out
+
+
+class PolicyError(ValueError):
+    """A policy's ``predict`` (or ``reference``) raised or returned an unusable action; the
+    message names the policy, the env, the seed(s) and the step."""
+
+
+class BadAction(ValueError):
+    """Raised by a wrapper around a policy whose action is unusable (e.g. a wrong shape): the
+    evaluation puts the policy, env, seed and step before its message."""
+
+
+def _seed_text(seeds: Sequence[int]) -> str:
+    seeds = list(seeds)
+    if len(seeds) == 1:
+        return f"seed {seeds[0]}"
+    if seeds == list(range(seeds[0], seeds[0] + len(seeds))):
+        return f"seeds {seeds[0]}-{seeds[-1]}"
+    return f"seeds {seeds[:4]}" if len(seeds) <= 4 else f"seeds [{seeds[0]}, {seeds[1]}, ..., {seeds[-1]}]"
+
+
+def _call(fn: Callable[..., Any], what: str, name: str, env_id: str, seeds: Sequence[int], step: int,
+          *args: Any, **kw: Any) -> Any:
+    """``fn(*args, **kw)``; an exception from it becomes a :class:`PolicyError` naming the policy,
+    the env, the seed(s) and the step (the original is chained as its cause)."""
+    try:
+        return fn(*args, **kw)
+    except PolicyError:
+        raise
+    except BadAction as exc:
+        raise PolicyError(f"policy {name!r} on {env_id}, {_seed_text(seeds)}, step {step + 1}: {exc}") from exc
+    except Exception as exc:  # noqa: BLE001 (a user's code can raise anything)
+        text = " ".join(str(exc).split())[:300]
+        raise PolicyError(f"policy {name!r} on {env_id}, {_seed_text(seeds)}, step {step + 1}: {what} raised "
+                          f"{type(exc).__name__}" + (f": {text}" if text else "")) from exc
+
+
+def _checked_action(out: Any, shape: tuple[int, ...], name: str, env_id: str, seeds: Sequence[int],
+                    step: int) -> Any:
+    """The action of ``predict``'s ``(action, state)``, checked to have ``shape``, a real numeric
+    dtype and finite values (returned as given: the env sees exactly what the policy returned)."""
+    where = f"policy {name!r} on {env_id}, {_seed_text(seeds)}, step {step + 1}"
+    if not isinstance(out, tuple) or len(out) != 2:
+        raise PolicyError(f"{where}: predict returned {type(out).__name__}, expected a pair (action, state)")
+    action = out[0]
+    try:
+        a = np.asarray(action)
+    except Exception as exc:  # noqa: BLE001 (ragged lists and odd objects)
+        raise PolicyError(f"{where}: its action is not an array ({type(exc).__name__})") from None
+    if a.dtype.kind not in "biuf":
+        raise PolicyError(f"{where}: its action has dtype {a.dtype}, expected real numbers (float32 or float64)")
+    if a.shape != shape:
+        raise PolicyError(f"{where}: its action has shape {a.shape}, expected {shape} (F_u, F_v, F_r in [-1, 1] "
+                          f"{'per env of the batch' if len(shape) == 2 else 'for one observation'})")
+    finite = np.isfinite(a)
+    if not finite.all():
+        bad = int(np.flatnonzero(~finite.reshape(len(seeds), -1).all(axis=1))[0]) if a.ndim == 2 else 0
+        raise PolicyError(f"policy {name!r} on {env_id}, seed {seeds[bad]}, step {step + 1}: its action "
+                          f"{np.array2string(a.reshape(-1, 3)[bad], precision=4)} is not finite (NaN or inf)")
+    return action
 
 
 def _episode_outputs(spec: TaskSpec, name: str, seed: int, terminated: bool, ret: float, err: np.ndarray,
@@ -164,6 +230,7 @@ def evaluate(policy: Any, env_id: str = "AUVFollow-S4-v0", seeds: Iterable[int] 
     name = policy_name or getattr(policy, "name", None) or type(policy).__name__
     has_ref = hasattr(policy, "reference")
     limits = np.asarray(spec.force_limits)
+    act_shape = tuple(env.action_space.shape)
     rows, trajs = [], []
     for seed in _bar(seeds, f"{name} on {env_id}", progress, nested=True):
         obs, info = env.reset(seed=seed)
@@ -171,8 +238,10 @@ def evaluate(policy: Any, env_id: str = "AUVFollow-S4-v0", seeds: Iterable[int] 
         rec: dict[str, list] = {k: [] for k in ("pose", "target", "ref", "err", "own", "force")}
         ret, terminated = 0.0, False
         while True:
-            action, state = policy.predict(obs, state=state, episode_start=start,
-                                           deterministic=deterministic)
+            k = len(rec["err"])
+            out = _call(policy.predict, "predict", name, env_id, (seed,), k, obs, state=state, episode_start=start,
+                        deterministic=deterministic)
+            action, state = _checked_action(out, act_shape, name, env_id, (seed,), k), out[1]
             start = np.zeros(1, dtype=bool)
             obs, reward, terminated, truncated, info = env.step(action)
             ret += reward
@@ -182,7 +251,8 @@ def evaluate(policy: Any, env_id: str = "AUVFollow-S4-v0", seeds: Iterable[int] 
             rec["err"].append(info["tracking_error"])
             rec["force"].append(np.clip(np.asarray(action, dtype=np.float64).reshape(-1)[:3], -1, 1) * limits
                                 if env_wrapper is None else np.full(3, np.nan))
-            rec["own"].append(policy.reference(obs)[0] if has_ref else np.full(3, np.nan))
+            rec["own"].append(_call(policy.reference, "reference", name, env_id, (seed,), k, obs)[0] if has_ref
+                              else np.full(3, np.nan))
             if terminated or truncated:
                 break
         arr = {k: np.asarray(v) for k, v in rec.items()}
@@ -316,17 +386,19 @@ def evaluate_batched(policies: Sequence[Any], env_id: str = "AUVFollow-S4-v0", s
     ret = np.zeros(n)
     start = np.ones(S, dtype=bool)
     actions = np.zeros((n, 3), dtype=np.float32)
+    act_shape = (S, 3)  # each policy's block of the batch
     for k in _bar(range(T), f"{P} policies x {S} seeds on {env_id}", progress, nested=True):
         for p, blk in enumerate(blocks):
-            actions[blk], _ = policies[p].predict(obs[blk], state=None, episode_start=start,
-                                                  deterministic=deterministic)
+            actions[blk] = _checked_action(
+                _call(policies[p].predict, "predict", names[p], env_id, seeds, k, obs[blk], state=None,
+                      episode_start=start, deterministic=deterministic), act_shape, names[p], env_id, seeds, k)
         start = np.zeros(S, dtype=bool)
         obs, reward, term, trunc, info = venv.step(actions)
         np.copyto(err[:, k], info["tracking_error"], where=alive)  # err is NaN where not written
         np.add(ret, reward, out=ret, where=alive)
         for p, blk in enumerate(blocks):
             if has_ref[p]:
-                own_k[p][...] = policies[p].reference(obs[blk])
+                own_k[p][...] = _call(policies[p].reference, "reference", names[p], env_id, seeds, k, obs[blk])
                 np.hypot(own_k[p][:, 0], own_k[p][:, 1], out=err_own[blk, k])
                 if trajectories:
                     own[k, blk] = own_k[p]

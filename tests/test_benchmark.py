@@ -163,7 +163,7 @@ def test_cli_writes_every_result_file_with_its_provenance(tmp_path, capsys):
     assert main(["benchmark", "--policies", "PID", "PROPOSED", "--tiers", "S1", "--seeds", "1000-1002",
                  "--out", str(out), "--resamples", "200", "--no-progress"]) == 0
     printed = capsys.readouterr().out
-    assert "| **PROPOSED** |" in printed
+    assert "1. PROPOSED" in printed and "| **PROPOSED** |" in (out / "leaderboard.md").read_text()
     for name in ("episodes.parquet", "leaderboard.csv", "leaderboard.md", "leaderboard.png", "benchmark.json"):
         assert (out / name).is_file(), name
     prov = json.loads((out / "benchmark.json").read_text())
