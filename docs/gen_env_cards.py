@@ -13,7 +13,8 @@ preset changes the card:
 * the version history: the docstring's "Version History" and CHANGELOG.md's version policy and
   releases, read from the file.
 
-``card_markdown(env_id)`` returns one card; the docs test calls it directly.
+``card_markdown(env_id)`` returns one card (``envs/<id>.md`` on the site); the table of cards is
+appended to ``docs/envs.md``. The docs test calls these functions directly.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 CARD_DIR = "envs"
+INDEX = "envs.md"  #: a page in docs/ to which the list of cards is appended
 #: docstring sections shown on every card, in this order (the others are per version)
 COMMON_SECTIONS = ("Description", "Action Space", "Observation Space", "Rewards", "Starting State", "Episode End",
                    "Info")
@@ -276,14 +278,12 @@ def card_markdown(env_id: str, doc: str | None = None, changelog: str | None = N
 
 
 def index_markdown(ids: list[str]) -> str:
+    """The table of cards appended to docs/envs.md: one row per id, linking to its card."""
     import gymnasium as gym
 
     from auv_follow_env.tiers import TIERS, make_env_config
 
-    rows = ["# Environment cards", "",
-            "One page per registered id, generated from the code when the site is built (the class docstring, "
-            "the presets and tiers, the registry and CHANGELOG.md).", "",
-            "| id | observation | what varies per reset | test seeds |", "|---|---|---|---|"]
+    rows = ["", "| id | observation | what varies per reset | test seeds |", "|---|---|---|---|"]
     for env_id in ids:
         kw = dict(gym.registry[env_id].kwargs)
         cfg = make_env_config(**kw)
@@ -298,7 +298,7 @@ def index_markdown(ids: list[str]) -> str:
         else:
             varies = "the phases of the target's manoeuvres, of the current and of the disturbances"
             seeds = _seed_text(_v0_test_seeds()) if "scenario" in kw else "-"
-        rows.append(f"| [{env_id}]({env_id}.md) | ({cfg.task_spec().obs_dim},) | {varies} | {seeds} |")
+        rows.append(f"| [{env_id}]({card_path(env_id)}) | ({cfg.task_spec().obs_dim},) | {varies} | {seeds} |")
     return "\n".join(rows) + "\n"
 
 
@@ -306,7 +306,7 @@ def main() -> None:
     import mkdocs_gen_files
 
     ids = registered_ids()
-    with mkdocs_gen_files.open(f"{CARD_DIR}/index.md", "w") as f:
+    with mkdocs_gen_files.open(INDEX, "a") as f:  # docs/envs.md with the generated table appended
         f.write(index_markdown(ids))
     for env_id in ids:
         with mkdocs_gen_files.open(card_path(env_id), "w") as f:
