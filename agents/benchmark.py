@@ -1298,11 +1298,13 @@ def write_outputs(out: Path, episodes: pd.DataFrame, board: pd.DataFrame, prov: 
     import shutil
     import tempfile
 
+    created = not out.exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
         stage = Path(tempfile.mkdtemp(prefix=".benchmark-partial-", dir=out))
     except OSError as exc:
         raise OutputWriteError(f"cannot write into {out} ({exc.strerror or _first_line(exc)})") from exc
+    ok = False
     try:
         staged = {k: stage / name for k, name in OUTPUT_FILES.items()}
         try:
@@ -1316,9 +1318,13 @@ def write_outputs(out: Path, episodes: pd.DataFrame, board: pd.DataFrame, prov: 
             raise OutputWriteError(f"cannot write into {out} ({exc.strerror or _first_line(exc)}): its previous "
                                    "files are kept") from exc
         placed = replace_set(stage, out, list(OUTPUT_FILES.values()))
+        ok = True
         return {k: placed[name] for k, name in OUTPUT_FILES.items()}
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+        if created and not ok:
+            with contextlib.suppress(OSError):
+                out.rmdir()  # the folder this call made, if it is still empty
 
 
 def _prov_key(prov: Any) -> str:
