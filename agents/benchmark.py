@@ -397,13 +397,15 @@ def _import_external(target: str) -> type:
     """The class ``module.path:ClassName`` (the current directory is searched too, so a file
     next to you works with the console script). Its protocol: ``Class(task_spec)`` builds the
     policy for one tier; ``predict(observation, state=None, episode_start=None,
-    deterministic=True) -> (action, state)`` takes a batch ``(n_envs, obs_dim)`` (and a single
-    observation) and returns actions in [-1, 1] of shape ``(n_envs, 3)``; an optional
-    ``reset()`` is called before each episode. Importing runs the module: name only code you
-    trust (building a report never imports it).
+    deterministic=True) -> (action, state)`` takes a batch ``(n_envs, obs_dim)`` and returns
+    actions in [-1, 1] of shape ``(n_envs, 3)`` (where the benchmark has one observation - the
+    unbatched evaluation, the replay episode - it passes a batch of one: :class:`_BatchProtocol`);
+    an optional ``reset()`` is called at the start of the episodes. Importing runs the module:
+    name only code you trust (building a report never imports it).
 
     Raises:
-        ValueError: the module cannot be imported, or has no such class with a ``predict``.
+        ValueError: the module cannot be imported (or raises while it is), or has no such class
+            with a ``predict``.
     """
     import importlib
     import os
@@ -729,9 +731,11 @@ def evaluate_tier(policies: Sequence[PolicySpec], tier: str, seeds: Sequence[int
     agent on a v0 scenario) is left out with a warning (``skip_incompatible``) or raises.
 
     With ``cache_dir``, each run's episodes are stored under a key of (env id, seeds, policy,
-    the run's model files, the git hashes of the episode code) and reused on a later call;
-    nothing is cached while that code differs from the git HEAD. Episodes are deterministic,
-    so a cached and a fresh evaluation agree.
+    the run's model files, the git hashes of the episode code, and for a user's
+    ``module:Class`` the source of its package: :func:`_external_fingerprint`) and reused on a
+    later call; nothing is cached while that code differs from the git HEAD, and a cache that
+    cannot be written is skipped with a warning. Episodes are deterministic, so a cached and a
+    fresh evaluation agree.
 
     All runs share one native vector env (:func:`controllers.evaluation.evaluate_batched`)
     unless ``batched`` is False (one single-env episode at a time, same numbers).
@@ -740,6 +744,11 @@ def evaluate_tier(policies: Sequence[PolicySpec], tier: str, seeds: Sequence[int
         columns tier, env_id, policy, kind, run, seed, steps, terminated, return, the
         ``true_*`` / ``own_*`` metrics, ``cond_*`` (the drawn condition) and
         ``fail_error_m`` (the loss threshold used for terminated episodes).
+
+    Raises:
+        ValueError: repeated or out-of-range seeds, a reserved label (:data:`RESERVED_LABELS`),
+            no policy that can run on the tier; a user's controller that fails
+            (:class:`controllers.evaluation.PolicyError`, naming it, the env, the seed and the step).
     """
     from controllers.evaluation import evaluate, evaluate_batched
 
@@ -971,33 +980,39 @@ def goal_check(board: pd.DataFrame, tier: str = "Hard", metric: str = "true_stea
 
 
 def _goal_words(g: Mapping[str, Any]) -> str:
-    verdict = "met" if g["met"] else "not met"
-    return (f"goal (best learned >= 30 % below the best classical, CIs apart) {verdict}: {g['best_learned']} "
-            f"{g['change_pct']:+.1f} % vs {g['best_classical']}, CIs {'apart' if g['cis_separated'] else 'overlap'}")
+    return (f"goal (best learned >= 30 % below the best classical, CIs apart): {'met' if g['met'] else 'not met'}, "
+            f"{g['best_learned']} {g['change_pct']:+.1f} % vs {g['best_classical']}, "
+            f"CIs {'apart' if g['cis_separated'] else 'overlap'}")
 
 
 def benchmark_summary(board: pd.DataFrame, files: Mapping[str, Path] | None = None, *, top: int = 5,
                       metric: str = "true_steady_mean") -> str:
     """A few lines for the terminal: per tier the ``top`` policies by the IQM of ``metric``
-    (label, IQM with its 95 % CI, kind), the goal check in words where the tier has a learned
-    and a classical policy, and where the full files are."""
+    (label, IQM with its 95 % CI, kind), the floors (reference rows) on one line, the goal
+    check in words where the tier has a learned and a classical policy, and where the full
+    files are."""
     def one_line(x: Any, width: int = 48) -> str:
         text = " ".join(str(x).split())
         return text if len(text) <= width else text[: width - 3] + "..."
 
+    def ci(r: Any) -> str:
+        return _fmt_ci(r[f"{metric}_iqm"], r[f"{metric}_iqm_lo"], r[f"{metric}_iqm_hi"])
+
     lines = []
     for tier, sub in board.groupby("tier", sort=False):
         sub = sub.sort_values(f"{metric}_iqm", kind="stable")
+        refs, comp = sub[sub["kind"] == "reference"], sub[sub["kind"] != "reference"]
         best = sub["best_classical"].iloc[0] if "best_classical" in sub else None
-        head = f"{one_line(tier)}: {len(sub)} policies by {metric.replace('true_', '')} error IQM [95 % CI] in m"
+        head = f"{one_line(tier)}: {len(comp)} policies by {metric.replace('true_', '')} error IQM [95 % CI] in m"
         lines.append(head + (f"; best classical {one_line(best)}" if isinstance(best, str) and best else ""))
-        shown = sub.head(top)
-        width = max(len(one_line(p)) for p in shown["policy"])
+        shown = comp.head(top)
+        width = max((len(one_line(p)) for p in shown["policy"]), default=0)
         for rank, (_, r) in enumerate(shown.iterrows(), 1):
-            ci = _fmt_ci(r[f"{metric}_iqm"], r[f"{metric}_iqm_lo"], r[f"{metric}_iqm_hi"])
-            lines.append(f"  {rank}. {one_line(r['policy']):<{width}}  {ci}  ({one_line(r['kind'], 12)})")
-        if len(sub) > top:
-            lines.append(f"  ... {len(sub) - top} more in the full table")
+            lines.append(f"  {rank}. {one_line(r['policy']):<{width}}  {ci(r)}  ({one_line(r['kind'], 12)})")
+        if len(comp) > top:
+            lines.append(f"  ... {len(comp) - top} more in the full table")
+        if len(refs):
+            lines.append("  floors: " + ", ".join(f"{one_line(r['policy'])} {ci(r)}" for _, r in refs.iterrows()))
         g = goal_check(board, str(tier), metric)
         if g["met"] is not None:
             lines.append("  " + _goal_words(g))
@@ -1442,7 +1457,11 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
             ``gap_closed`` column.
 
     Raises:
-        ValueError: unknown tier or policy, bad seeds.
+        ValueError: unknown tier or policy, a reserved label, repeated seeds or seeds outside
+            [0, 2**63 - 1], ``n_resamples`` outside [1, :data:`MAX_RESAMPLES`]; all before any
+            episode runs.
+        OutputWriteError: the files could not be written into ``out_dir`` (its previous files
+            are kept).
     """
     items: list[Any] = []
     for p in (list(policies) if policies is not None else [CLASSICAL]):

@@ -458,24 +458,26 @@ def _row(policy, kind, iqm, lo, hi, best="C1"):
 
 
 def test_summary_of_a_hand_made_leaderboard():
-    """Top rows by IQM with their CIs, the goal check in words, and where the files are. By hand:
-    the learned 0.06 against the best classical 0.10 is -40.0 % with CIs [0.05, 0.07] and
-    [0.09, 0.11] apart, so the goal (-30 %, CIs apart) is met."""
+    """Top rows by IQM with their CIs, the floors on one line, the goal check in words, and where
+    the files are. By hand: the learned 0.06 against the best classical 0.10 is -40.0 % with CIs
+    [0.05, 0.07] and [0.09, 0.11] apart, so the goal (-30 %, CIs apart) is met."""
     board = pd.DataFrame([_row("C2", "classical", 0.20, 0.18, 0.22), _row("L1", "learned", 0.06, 0.05, 0.07),
                           _row("C1", "classical", 0.10, 0.09, 0.11), _row("C3", "classical", 0.30, 0.28, 0.33),
+                          _row("C4", "classical", 0.40, 0.38, 0.43),
                           _row("information floor", "reference", 0.01, 0.01, 0.01)])
     files = {k: Path("/r/b") / n for k, n in B.OUTPUT_FILES.items()}
     text = B.benchmark_summary(board, files, top=3)
     lines = text.splitlines()
     assert lines[0] == "Hard: 5 policies by steady_mean error IQM [95 % CI] in m; best classical C1"
-    assert lines[1].split() == ["1.", "information", "floor", "0.0100", "[0.0100,", "0.0100]", "(reference)"]
-    assert lines[2].split() == ["2.", "L1", "0.0600", "[0.0500,", "0.0700]", "(learned)"]
-    assert lines[3].split() == ["3.", "C1", "0.1000", "[0.0900,", "0.1100]", "(classical)"]
+    assert lines[1].split() == ["1.", "L1", "0.0600", "[0.0500,", "0.0700]", "(learned)"]
+    assert lines[2].split() == ["2.", "C1", "0.1000", "[0.0900,", "0.1100]", "(classical)"]
+    assert lines[3].split() == ["3.", "C2", "0.2000", "[0.1800,", "0.2200]", "(classical)"]
     assert lines[4].strip() == "... 2 more in the full table"
-    assert "met: L1 -40.0 % vs C1, CIs apart" in lines[5]
-    assert lines[6].startswith("full table: /r/b/leaderboard.md (and episodes.parquet") and len(lines) == 7
+    assert lines[5].strip() == "floors: information floor 0.0100 [0.0100, 0.0100]"
+    assert lines[6].strip().endswith("CIs apart): met, L1 -40.0 % vs C1, CIs apart")
+    assert lines[7].startswith("full table: /r/b/leaderboard.md (and episodes.parquet") and len(lines) == 8
     board.loc[1, "true_steady_mean_iqm_hi"] = 0.095  # CIs overlap: not met
-    assert "not met: L1 -40.0 % vs C1, CIs overlap" in B.benchmark_summary(board)
+    assert "not met, L1 -40.0 % vs C1, CIs overlap" in B.benchmark_summary(board)
 
 
 def test_cli_prints_a_short_summary(tmp_path, capsys):
