@@ -148,3 +148,23 @@ def test_no_issue_numbers_or_hashes(path):
     text = path.read_text()
     found = [m.group(0).strip() for m in ISSUE.finditer(text)] + [m.group(0) for m in HASH.finditer(text)]
     assert not found, f"{path.relative_to(ROOT)} refers to {found}: say it in plain words (CHANGELOG.md keeps history)"
+
+
+# --- the code on the pages runs ----------------------------------------------------------------
+
+def _blocks(page: str) -> list[str]:
+    return re.findall(r"^```python\n(.*?)^```", (ROOT / "docs" / page).read_text(), flags=re.S | re.M)
+
+
+PAGE_BLOCKS = [(page, i) for page in ("interop.md", "getting_started.md", "training.md")
+               for i in range(len(_blocks(page)))]
+
+
+@pytest.mark.parametrize("page,index", PAGE_BLOCKS, ids=[f"{p}-{i}" for p, i in PAGE_BLOCKS])
+def test_page_python_block_runs_alone(page, index):
+    code = _blocks(page)[index]
+    for module in re.findall(r"^from (torchrl|skrl)\b", code, flags=re.M):
+        pytest.importorskip(module, reason=f"{module} is not installed (pip install -e '.[dev]')")
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
+    assert out.returncode == 0, f"{page} block {index} failed:\n{code}\n--- stderr ---\n{out.stderr[-3000:]}"
