@@ -30,8 +30,8 @@ from typing import Any
 import yaml
 
 import auv_follow_env
-from agents.residual import DEFAULT_CONTROLLER, DEFAULT_HISTORY_LEN, DEFAULT_HISTORY_STRIDE, DEFAULT_SCALE
-from agents.train import ALGOS, MAX_N_ENVS, MODES, ConfigError, TrainConfig, TrainingInterrupted
+from agents.training.config import ALGOS, MAX_N_ENVS, MODES, ConfigError, TrainConfig, TrainingInterrupted
+from agents.training.history import DEFAULT_CONTROLLER, DEFAULT_HISTORY_LEN, DEFAULT_HISTORY_STRIDE, DEFAULT_SCALE
 
 __all__ = ["main", "build_parser"]
 
@@ -156,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "controller; everything is checked before the run directory is created.",
                        epilog=_TRUST)
     t.add_argument("--algo", choices=ALGOS, default="ppo",
-                   help="algorithm (bppo: the batched PPO of agents/batched_ppo.py on the native vector env)")
+                   help="algorithm (bppo: the batched PPO of agents/training/batched_ppo.py on the native vector env)")
     t.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default="AUVFollow-S4-v0", help="env id")
     t.add_argument("--env-kwarg", dest="env_kwargs", type=_key_value, action="append", default=[],
                    metavar="KEY=VALUE", help="scenario override for gym.make (repeatable), e.g. disturbance=L1")
@@ -197,7 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--resume", dest="resume_from", default=None,
                    help="checkpoint/model .zip to continue (trusted files only: its vecnormalize .pkl is unpickled)")
     t.add_argument("--hyperparams", dest="hyperparams_file", default=None,
-                   help="rl-zoo3-format YAML file (None: agents/hyperparams/<algo>.yml)")
+                   help="rl-zoo3-format YAML file (None: agents/training/hyperparams/<algo>.yml)")
     t.add_argument("--hp", dest="hyperparams", type=_key_value, action="append", default=[], metavar="KEY=VALUE",
                    help="override a hyperparameter (repeatable), e.g. learning_rate=1e-4")
     t.add_argument("--no-progress", dest="progress_bar", action="store_false", help="no progress output")
@@ -258,7 +258,7 @@ def _check_writable(path: Path, flag: str, want_dir: bool) -> None:
 
 
 def _load(path: str, flag: str):
-    from agents.train import load_agent
+    from agents.training.loading import load_agent
 
     try:
         return load_agent(path)
@@ -267,7 +267,8 @@ def _load(path: str, flag: str):
 
 
 def _train(args: argparse.Namespace) -> None:
-    from agents.train import TrainingFailed, train
+    from agents.training.config import TrainingFailed
+    from agents.training.runner import train
 
     kw = vars(args).copy()
     kw.pop("command")
@@ -289,11 +290,11 @@ def _train(args: argparse.Namespace) -> None:
 
 
 def _evaluate(args: argparse.Namespace) -> None:
-    from agents.train import evaluate_agent
+    from agents.training.loading import evaluate_agent
 
     if args.out:
         _check_writable(Path(args.out), "--out", want_dir=False)
-    from agents.benchmark import default_test_seeds
+    from agents.benchmark.protocol import default_test_seeds
 
     agent = _load(args.model, "model")
     seeds = args.seeds if args.seeds is not None else default_test_seeds(args.env_id or agent.env_id)
@@ -311,7 +312,7 @@ def _write_csv_atomic(df: Any, path: Path) -> None:
     interrupted write leaves the previous file (and no temporary one)."""
     import tempfile
 
-    from agents.benchmark import OutputWriteError
+    from agents.benchmark.outputs import OutputWriteError
 
     tmp = None
     try:
@@ -332,13 +333,13 @@ def _write_csv_atomic(df: Any, path: Path) -> None:
 
 
 def _compare(args: argparse.Namespace) -> None:
-    from agents.compare import compare, summary_markdown
+    from agents.benchmark.compare import compare, summary_markdown
 
     out = Path(args.out)
     _check_writable(out, "--out", want_dir=True)
     if not args.name or "/" in args.name or args.name in (".", ".."):
         raise _Refused("--name", f"{args.name!r} is invalid: must be a file name stem without '/'")
-    from agents.benchmark import default_test_seeds
+    from agents.benchmark.protocol import default_test_seeds
 
     agents = [_load(m, "models") for m in args.models]
     if args.env_id is None:
@@ -382,11 +383,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-# --- benchmark, report, sweep (issue 12) --------------------------------------------------
+# --- benchmark, report, sweep --------------------------------------------------
 
 def _add_benchmark_commands(sub: Any) -> None:
     """The ``benchmark``, ``report`` and ``sweep`` subcommands (each sets ``handler``)."""
-    from agents.benchmark import DEFAULT_RESAMPLES, MAX_RESAMPLES
+    from agents.benchmark.stats import DEFAULT_RESAMPLES, MAX_RESAMPLES
 
     def _resamples(text: str) -> int:
         return _integer(text, 1, MAX_RESAMPLES)
@@ -421,7 +422,7 @@ def _add_benchmark_commands(sub: Any) -> None:
                         "(default: no cache)")
     b.add_argument("--floors", action="store_true",
                    help="add each v1 tier's control and information floors as reference rows and a 'gap closed' "
-                        "column (agents/floors.py; about a minute per tier)")
+                        "column (agents/benchmark/floors.py; about a minute per tier)")
     b.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     b.set_defaults(handler=_cmd_benchmark)
 
@@ -466,7 +467,8 @@ def _add_benchmark_commands(sub: Any) -> None:
 def _cmd_benchmark(args: argparse.Namespace) -> None:
     import shlex
 
-    from agents.benchmark import benchmark, benchmark_summary
+    from agents.benchmark.leaderboard import benchmark_summary
+    from agents.benchmark.run import benchmark
 
     if args.out is None:
         args.out = SCRATCH_BENCH
@@ -482,7 +484,7 @@ def _cmd_benchmark(args: argparse.Namespace) -> None:
 
 
 def _cmd_report(args: argparse.Namespace) -> None:
-    from agents.report import write_report
+    from agents.benchmark.report import write_report
 
     if args.out is not None:
         _check_writable(Path(args.out), "--out", want_dir=False)
@@ -492,7 +494,7 @@ def _cmd_report(args: argparse.Namespace) -> None:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> None:
-    from agents.sweep import SweepConfig, SweepFailed, SweepUnavailable, sweep
+    from agents.benchmark.sweep import SweepConfig, SweepFailed, SweepUnavailable, sweep
 
     try:
         cfg = SweepConfig.from_args(args)
@@ -515,7 +517,7 @@ def _cmd_sweep(args: argparse.Namespace) -> None:
 
 def _os_error_text(exc: OSError) -> str:
     """One line for a failed file operation: the message, or the reason and the file."""
-    from agents.benchmark import OutputWriteError
+    from agents.benchmark.outputs import OutputWriteError
 
     if isinstance(exc, OutputWriteError) or not exc.strerror:
         return " ".join(str(exc).split())

@@ -215,7 +215,7 @@ def _clip(x, lo, hi):
 # for n < 2^20), then the minimax polynomials of __kernel_sin / __kernel_cos with the tail.
 # Within 1 ULP of the exact value for |x| <= FAST_TRIG_MAX (tests/test_fast_math.py);
 # glibc's sin/cos are within 0.52 ULP (measured), and the two differ in the last bit for about 3 % of
-# arguments. The envs' default (``sincos="simd"``) since issue 23; ``sincos="libm"`` keeps glibc's
+# arguments. The envs' default (``sincos="simd"``) since 0.2.0; ``sincos="libm"`` keeps glibc's
 # scalar calls (the v0 golden arrays were recorded with them; the contract is a 1e-9 tolerance).
 _INVPIO2 = 6.36619772367581382433e-01
 _PIO2_1 = 1.57079632673412561417e+00  # first 33 bits of pi/2
@@ -464,7 +464,7 @@ def _ix(typingctx, row, b):
     """Index of lane b of row ``row``, ``row * BLOCK + b`` as uint64 (unsigned: no negative-index
     wrap-around to check). An intrinsic: two LLVM instructions at each use, where an
     ``inline="always"`` function made numba re-run its front end at each of the kernels' hundreds
-    of uses (cold start, issue 23)."""
+    of uses (cold start)."""
     if not isinstance(row, types.Integer) or not isinstance(b, types.Integer):
         return None
     sig = types.uint64(row, b)
@@ -657,7 +657,7 @@ def _rotation_factors(wk, hh, m):
 def _redo_lane(wk, h, b):
     """Lane b's RK4 step again with libm cos/sin for its heading increments (the rare lanes
     with an increment beyond SMALL_ANGLE); a function of its own, compiled once, so that the
-    block kernels hold one inlined copy of the RK4 lane, not two (cold start, issue 23)."""
+    block kernels hold one inlined copy of the RK4 lane, not two (cold start)."""
     out, _big = _rk4_block_lane(wk, h, b, True)
     _store9(wk, K_OUT, b, out)
 
@@ -1317,7 +1317,7 @@ def _called(disp):
     inlining (no ``inline="always"``): for the reset, which runs once per episode, and the single
     env's step (kernel_one, one env per call: nothing to vectorise), so that the link, processes,
     thrusters, sin/cos caches and observation compile once as functions instead of as an
-    inlined copy in each kernel (cold start, issue 23); with the options :data:`INTERNAL`. Same code, same
+    inlined copy in each kernel (cold start); with the options :data:`INTERNAL`. Same code, same
     results."""
     opts = {k: v for k, v in disp.targetoptions.items() if k not in ("nopython", "inline")}
     return njit(cache=True, **{**opts, **INTERNAL})(disp.py_func)

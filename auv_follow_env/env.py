@@ -142,11 +142,11 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
     ``sincos`` (on every id): how each step's sin/cos are computed (the ten tones, both headings
     at every substep and the observation's relative heading: all 15 sin/cos pairs of a v0 step;
     v1's random draws, the reset's warm-up and the rare heading increments beyond 0.25 rad keep
-    libm either way). ``"simd"`` (the default since issue 23): a branch-free polynomial
+    libm either way). ``"simd"`` (the default since 0.2.0): a branch-free polynomial
     (:func:`~auv_follow_env.dynamics.fast_sincos`, within 1 ULP) in SIMD loops, several times
     faster than glibc's scalar calls (results/bench_vector.md). ``"libm"``: glibc's sin/cos, the
-    path the v0 golden arrays (tests/data/frozen_v0.npz) were recorded with and the default until
-    issue 23. The two differ in the last bit of about 3 % of the values, so trajectories differ
+    path the v0 golden arrays (tests/data/frozen_v0.npz) were recorded with and the default in
+    0.1.0. The two differ in the last bit of about 3 % of the values, so trajectories differ
     by rounding-level amounts (over the v0 golden set at most 1.8e-15 m in the follower's pose,
     observations identical; tests/test_fast_math.py and tests/test_frozen_v0.py bound them). The
     frozen v0 contract is a tolerance (1e-9 relative), not bit identity, which never held across

@@ -17,7 +17,7 @@ env compiles one RK4 step instead of two (cold start). Same operations in the sa
 results are bit-identical to the vector env's (tests/test_kernel_one.py compares every array
 after every step, also with heading increments beyond SMALL_ANGLE). :func:`reset_one` is
 ``reset_kernel``'s code in the same way, sharing the one-lane ``advance_block`` with the step,
-so a single env compiles one specialisation of it (cold start, issue 23).
+so a single env compiles one specialisation of it (cold start).
 
 Buffer layout (float64 slots): a header (queue capacity, observation length, history length and
 offset), then cfg, state, k (int64), rs (uint64), proc, params, truth, rew, term (bool), obs

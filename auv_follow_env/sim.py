@@ -490,7 +490,7 @@ def config_vector(config: EnvConfig) -> np.ndarray:
 
 
 #: how the kernels compute the step's sin/cos (the ``sincos`` keyword of the envs): "simd" (the
-#: default since issue 23: :func:`~auv_follow_env.dynamics.fast_sincos` in SIMD loops, within 1 ULP)
+#: default since 0.2.0: :func:`~auv_follow_env.dynamics.fast_sincos` in SIMD loops, within 1 ULP)
 #: or "libm" (glibc's scalar calls: the path the v0 golden arrays were recorded with)
 SINCOS = ("simd", "libm")
 

@@ -28,7 +28,7 @@ TABLE_1: dict[str, tuple[bool, bool]] = {
 }
 #: the paper's four controllers (Table 1), exactly as printed
 CONTROLLERS: tuple[str, ...] = ("PID", "ROBUST_ONLY", "PRED_ONLY", "PROPOSED")
-#: OURS, not the paper's: stronger classical baselines (issue 11)
+#: OURS, not the paper's: stronger classical baselines
 #:
 #: * ``PROPOSED_KF``: PROPOSED with the target Kalman filter (:mod:`controllers.estimator`)
 #:   in place of the predictor (13)-(17);
@@ -42,7 +42,7 @@ EXTENDED_CONTROLLERS: tuple[str, ...] = ("PROPOSED_KF", "PROPOSED_KF_DOB", "MPC"
 ALL_CONTROLLERS: tuple[str, ...] = CONTROLLERS + EXTENDED_CONTROLLERS
 #: time constant of the disturbance observer's low-pass filter [s] (ours; tuned on seeds 100-119)
 DOB_TIME_CONSTANT = 0.5
-#: outer-loop gain K_p [1/s] of PROPOSED_KF and PROPOSED_KF_DOB on the v1 tiers (ours, issue 20): chosen
+#: outer-loop gain K_p [1/s] of PROPOSED_KF and PROPOSED_KF_DOB on the v1 tiers (ours): chosen
 #: from {1, 2, 3, 4} by the IQM of the steady-state true tracking error of PROPOSED_KF_DOB on the
 #: TRAINING seeds 500-599 of each tier (``python -m experiments.estimator_study``,
 #: results/estimator_study.md); Easy's 3 and 4 tie within 0.5 % (the smaller is kept). Extreme

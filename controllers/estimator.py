@@ -35,7 +35,7 @@ with no retrodiction.
 OU is the v1 tiers' own target model (Ornstein-Uhlenbeck surge speed about an unknown mean
 u_bar and turn rate about 0): over a long gap between fixes its prediction relaxes to a
 straight line at the mean speed instead of extrapolating a turn for ever. ``OU0`` (the tiers'
-default, issue 20) adds the target's structure: its sway velocity is zero (eq. (10) with
+default since 0.2.0) adds the target's structure: its sway velocity is zero (eq. (10) with
 v_t = 0 for every target simulated here), so sway is not a state and the fix's reported sway,
 pure noise, is not used; the measurement is (x, y, psi, u, r). It runs in numba
 (:mod:`controllers._ou0`: closed-form Jacobian, the present advanced one control step at a time,

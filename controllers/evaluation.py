@@ -55,7 +55,7 @@ def check_task_spec(policy: Any, spec: TaskSpec, env_id: str = "the env") -> Non
     """Raise ``ValueError`` if ``policy`` was built for another task than ``spec``.
 
     Applies to policies with a ``spec`` attribute that is a :class:`TaskSpec` (the scripted
-    controllers, :class:`agents.residual.ResidualPolicy`); compares :data:`SPEC_FIELDS`, the
+    controllers, :class:`agents.training.residual.ResidualPolicy`); compares :data:`SPEC_FIELDS`, the
     facts such a policy computes with (its delay, rate, offset, nominal model, force limits).
     Other policies are not checked.
     """

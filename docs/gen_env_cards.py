@@ -185,7 +185,7 @@ def _tier_block(name: str) -> str:
 
 
 def _v0_test_seeds() -> tuple[int, ...]:
-    from agents.benchmark import V0_TEST_SEEDS
+    from agents.benchmark.protocol import V0_TEST_SEEDS
 
     return tuple(V0_TEST_SEEDS)
 

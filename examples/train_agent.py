@@ -14,7 +14,9 @@ from __future__ import annotations
 import argparse
 import tempfile
 
-from agents.train import TrainConfig, evaluate_agent, load_agent, train
+from agents.training.config import TrainConfig
+from agents.training.loading import evaluate_agent, load_agent
+from agents.training.runner import train
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -31,7 +31,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if not 1 <= args.seeds <= 100:
         parser.error(f"--seeds {args.seeds}: must be in [1, 100]")
-    from agents.benchmark import benchmark
+    from agents.benchmark.run import benchmark
     from auv_follow_env import TIERS
 
     res = benchmark(["PROPOSED", "mine=examples.user_controller:GoToReference"], tiers=["Hard"],

@@ -1,7 +1,7 @@
 """Speed of this checkout against another one (a git revision), side by side in one run.
 
-    python -m experiments.bench_ab --baseline 5a3ae9d          # any revision of this repository
-    python -m experiments.bench_ab --baseline 5a3ae9d --sizes 0 1024 4096 --rounds 3   # 0: the single env
+    python -m experiments.bench_ab --baseline HEAD~3           # any revision of this repository
+    python -m experiments.bench_ab --baseline HEAD~3 --sizes 0 1024 4096 --rounds 3   # 0: the single env
     python -m experiments.bench_ab --baseline main --sizes 0 4096 --cold 2   # and the cold start
     python -m experiments.bench_ab --baseline main --burn 1200   # the steady state of a long run
 
@@ -127,7 +127,7 @@ def main(argv: list[str] | None = None) -> str:
              f"warm; timed after {a.burn} control steps), baseline and this checkout alternating for {a.rounds} "
              f"rounds, best kept; load average before the run {load}, after it "
              f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}. Default settings "
-             f"(each revision's default sin/cos: glibc's before issue 23, the SIMD polynomial since).", "",
+             f"(each revision's default sin/cos: glibc's up to 0.1.0, the SIMD polynomial since 0.2.0).", "",
              "| N | env | threads | baseline | this checkout | speed-up |", "|---|---|---|---|---|---|"]
     for n, env_id, par, b, t in rows:
         size = "single env (gym.make)" if n == 0 else n

@@ -104,8 +104,8 @@ def main(argv: list[str] | None = None) -> str:
         f"| paper reproduction, 16 runs (no figures) | {t_rep_b:.2f} s | {t_rep_s:.2f} s | {t_rep_s / t_rep_b:.1f}x |",
         "", f"Mean steady-state true-reference error over the {a.episodes} episodes: {mean_err:.4f} m "
         f"(sincos='libm': {mean_libm:.4f} m; difference {abs(mean_libm - mean_err):.1e} m).",
-        "", "Goals: Monte Carlo >= 50x the loop and 16 reproduction runs batched < 2 s (issue 6); 10,000 "
-        "episodes <= 5 s (issue 13). The vector env steps on numba's threads (chosen automatically for N >= 256).",
+        "", "Goals: Monte Carlo >= 50x the loop and 16 reproduction runs batched < 2 s; 10,000 "
+        "episodes <= 5 s. The vector env steps on numba's threads (chosen automatically for N >= 256).",
         ""]
     text = "\n".join(lines)
     return write_report(a.out, text)

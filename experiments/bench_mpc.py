@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> str:
     venv.close()
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
 
-    from agents.benchmark import iqm
+    from agents.benchmark.stats import iqm
 
     steady = int(round(spec.steady_start_s / spec.dt))
     score = float(iqm(err_new[steady:].mean(axis=0)))

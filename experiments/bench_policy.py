@@ -42,7 +42,7 @@ from controllers import ALL_CONTROLLERS, make_controller
 from controllers.evaluation import evaluate_batched
 from experiments.outputs import output_path, write_report
 
-GOAL = 1.5e6  #: evaluate_batched with PROPOSED, env-steps/s at N = 4096 (issue 13)
+GOAL = 1.5e6  #: evaluate_batched with PROPOSED, env-steps/s at N = 4096
 
 
 @dataclass

@@ -1,14 +1,14 @@
-"""Training throughput, side by side in one process (issue 22): env-steps per second of
+"""Training throughput, side by side in one process: env-steps per second of
 
-* SB3 PPO on Pendulum-v1 with 8 envs (agents/hyperparams/ppo.yml's Pendulum-v1 section);
+* SB3 PPO on Pendulum-v1 with 8 envs (agents/training/hyperparams/ppo.yml's Pendulum-v1 section);
 * today's default PPO config on AUVFollow-Hard-v1 (SB3 PPO, 8 DummyVecEnv envs, ppo.yml's
   default section): from scratch, and residual on PROPOSED_KF_DOB with the per-env
-  residual wrapper and the v0-era history (history_len 4, as on main before issue 22);
-* the batched path (``--algo bppo``, agents/batched_ppo.py) with the CLI defaults
-  (agents/hyperparams/bppo.yml: 512 envs, estimator observation on v1): from scratch, and
+  residual wrapper and the v0-era history (history_len 4, as in earlier versions);
+* the batched path (``--algo bppo``, agents/training/batched_ppo.py) with the CLI defaults
+  (agents/training/hyperparams/bppo.yml: 512 envs, estimator observation on v1): from scratch, and
   residual on PROPOSED_KF_DOB.
 
-Each configuration is trained by :func:`agents.train.train` (the code ``python -m agents.cli
+Each configuration is trained by :func:`agents.training.train` (the code ``python -m agents.cli
 train`` runs) with evaluation, checkpoints, TensorBoard and the final score off; the rate is
 the run's own ``steps_per_s`` (env steps over the training loop's wall clock, updates
 included), the median of ``--repeats`` interleaved repetitions, after one untimed warm-up
@@ -46,7 +46,8 @@ CONFIGS: dict[str, dict] = {
 
 
 def run_one(overrides: dict, timesteps: int, out: Path) -> dict:
-    from agents.train import TrainConfig, train
+    from agents.training.config import TrainConfig
+    from agents.training.runner import train
 
     cfg = TrainConfig(**overrides, total_timesteps=timesteps, out_dir=str(out), checkpoint_freq=0, eval_freq=0,
                       progress_bar=False, tensorboard=False, final_eval=False)
@@ -88,7 +89,7 @@ def main(argv: list[str] | None = None) -> dict:
     ratios = {"scratch": new_s / old_s, "residual": new_r / old_r, "residual_vs_pendulum": new_r / pend}
     load = os.getloadavg()[0]
     lines = ["# Training throughput: today's PPO vs the batched path (bppo)", "",
-             "One process, every configuration trained by `agents.train.train` (evaluation, checkpoints, "
+             "One process, every configuration trained by `agents.training.train` (evaluation, checkpoints, "
              "TensorBoard off); env steps per second of the training loop (rollouts and updates), median of "
              f"{a.repeats} interleaved repetitions after an untimed warm-up; CPU-s per 1k steps from "
              "`time.process_time` over the whole call (setup included).", "",

@@ -60,12 +60,12 @@ class Args:
     burn: int = 1200  #: steady state: control steps stepped before timing (0: not measured)
 
 
-#: goals at the largest N (issue 23): (label, numerator column, denominator column, minimum ratio)
+#: goals at the largest N: (label, numerator column, denominator column, minimum ratio)
 GOALS = (("native, both cores / SyncVectorEnv", "parallel", "sync", 50.0),
          ("native / bare kernel, one thread (>= 0.67 means env step <= 1.5x kernel)", "native", "kernel", 1 / 1.5),
          ("v1 tier native / v0 native, one thread", "tier", "native", 0.9),
          ("evaluate_batched with PROPOSED / native env alone, both cores", "policy", "parallel", 0.7))
-#: absolute goals at the largest N (issue 23): (label, column, minimum env-steps/s)
+#: absolute goals at the largest N: (label, column, minimum env-steps/s)
 RATE_GOALS = (("native, parallel=True (both cores)", "parallel", 3e6), ("native, one thread", "native", 1.8e6))
 KERNEL_GOAL_NS = 250.0  #: bare kernel, ns per env-step on one core
 COLUMNS = {"native": "AUVFollow native (1 thread)", "parallel": "AUVFollow native, parallel=True",
@@ -74,7 +74,7 @@ COLUMNS = {"native": "AUVFollow native (1 thread)", "parallel": "AUVFollow nativ
            "tier_libm_parallel": "v1 tier, sincos='libm', parallel=True",
            "sync": "AUVFollow SyncVectorEnv", "cartpole": "CartPole-v1 native",
            "kernel": "bare kernel (integrate, 1 thread)", "kernel_libm": "bare kernel, libm"}
-#: the same goals with sincos="libm" (glibc's sin/cos, the default until issue 23)
+#: the same goals with sincos="libm" (glibc's sin/cos, the 0.1.0 default)
 LIBM_OF = {"native": "libm", "parallel": "libm_parallel", "tier_parallel": "tier_libm_parallel",
            "policy": "policy_libm", "kernel": "kernel_libm"}
 COLD_GOAL_S, CACHED_GOAL_S = 15.0, 1.0  #: first reset + step of a fresh clone / with the numba cache [s]
@@ -606,7 +606,7 @@ def report(args: Args, rows: dict[int, dict[str, float]], load: str, load_after:
               f"**sin/cos:** the {ops['step']['libm']} sin/cos of a step cost {floor_simd:.0f} ns per env-step on one "
               f"core with the default SIMD polynomial, {floor:.0f} ns with glibc's scalar calls (`sincos='libm'`, "
               f"at most {fmt(1e9 / floor)} env-steps/s per core before any other work). The two differ in the last "
-              f"bit of about 3 % of the values; since issue 23 the v0 contract is a tolerance (1e-9 relative of the "
+              f"bit of about 3 % of the values; since 0.2.0 the v0 contract is a tolerance (1e-9 relative of the "
               f"golden arrays, tests/test_frozen_v0.py), so the faster one is the default. {_footprint(rows)}"]
     if prof is not None:
         p = prof

@@ -1,7 +1,7 @@
 """The structured target estimator and the outer-loop gain on the tiers' TRAINING seeds: how far
 the estimate of the present reference point is from the truth, and how well PROPOSED_KF_DOB
-follows, per estimator setting and K_p (issue 20: the estimator uses the target's structure;
-tracking a jumping estimate).
+follows, per estimator setting and K_p (an estimator that uses the target's structure; tracking a
+jumping estimate).
 
     python -m experiments.estimator_study                      # seeds 500-599, Easy/Medium/Hard
     python -m experiments.estimator_study --tiers Hard --seeds 500-531 --variants OU,OU0

@@ -1,12 +1,12 @@
-"""Floors per tier: how much is possible on each acoustic-link tier (issue 20).
+"""Floors per tier: how much is possible on each acoustic-link tier.
 
     python -m experiments.floors                    # Easy, Medium, Hard, Extreme; 100 test seeds each
     python -m experiments.floors --tiers Hard --seeds 10   # a quick look (writes to results/tmp/floors)
 
-For every published test episode of each tier (library: :mod:`agents.floors`):
+For every published test episode of each tier (library: :mod:`agents.benchmark.floors`):
 
 * the **control floor**: every classical controller (``controllers.ALL_CONTROLLERS`` except
-  MPC, see ``agents.floors.SLOW_CONTROLLERS``) on the same episode with a perfect link (the
+  MPC, see ``agents.benchmark.floors.SLOW_CONTROLLERS``) on the same episode with a perfect link (the
   present target every step, no latency, loss or noise; thruster lag and rate limit on); the
   floor is the controller with the lowest IQM;
 * the **information floor**: the expected error of the optimal estimate of the present
@@ -31,8 +31,8 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from agents import floors
-from agents.benchmark import stratified_bootstrap_ci
+from agents.benchmark import floors
+from agents.benchmark.stats import stratified_bootstrap_ci
 from auv_follow_env.tiers import TIERS
 from experiments.outputs import output_path, write_report
 
@@ -101,7 +101,8 @@ def run(args: Args) -> tuple[pd.DataFrame, pd.DataFrame]:
 
 def report(table: pd.DataFrame, perfect: pd.DataFrame, args: Args, command: str) -> str:
     lines = ["# Floors per tier", "",
-             f"Reproduce: `{command}` (library: `agents/floors.py`; derivation: docs/benchmark.md, \"Floors\").", "",
+             f"Reproduce: `{command}` (library: `agents/benchmark/floors.py`; "
+             "derivation: docs/benchmark.md, \"Floors\").", "",
              f"Steady-state (t >= 10 s) true-reference error [m] per episode, IQM [95 % stratified-bootstrap CI] "
              f"over the first {args.seeds} published test seeds of each tier. *Control floor*: the best classical "
              "controller on the same episodes with a perfect link (the present target every step; thruster lag and "
@@ -110,7 +111,8 @@ def report(table: pd.DataFrame, perfect: pd.DataFrame, args: Args, command: str)
              "trajectory). *Realised*: an extended Kalman filter with the true parameters on the same packets. "
              f"*Follower*: {args.follower} on the real link (whose packets the floor uses). *Estimator*: the "
              "tier's own target estimator (`controllers.estimator`, OU0, which does not know the episode's "
-             "parameters) on the same packets, with the floor's conventions (`agents.floors.estimator_error`); "
+             "parameters) on the same packets, with the floor's conventions "
+             "(`agents.benchmark.floors.estimator_error`); "
              "\"estimator / floor\" compares the sums over the episodes like \"realised / floor\".", "",
              "| tier | control floor (controller) | information floor | realised (EKF) | realised / floor | "
              "estimator | estimator / floor | "

@@ -1,5 +1,5 @@
 """Learning curves of the batched-PPO runs (``--algo bppo``) against the classical baselines
-and the floors on the same evaluation seeds (issue 22).
+and the floors on the same evaluation seeds.
 
     python -m experiments.learning_curves                    # results/benchmark/runs/bppo-* -> PNG + MD
     python -m experiments.learning_curves --runs runs/my-run --out results/tmp/curves.png
@@ -7,7 +7,7 @@ and the floors on the same evaluation seeds (issue 22).
 Each run's ``eval.csv`` holds, every million steps, the steady-state (t >= 10 s) true-reference
 error over its fixed evaluation seeds (training-range seeds, 500-531 by default). On the same
 seeds and tier this script scores the best classical controllers (PROPOSED_KF_DOB and MPC) and
-computes the information floor (agents/floors.py), and draws them as horizontal lines: a curve
+computes the information floor (agents/benchmark/floors.py), and draws them as horizontal lines: a curve
 that flattens above them has converged to something worse; one still falling was stopped early.
 Writes the PNG and a Markdown table (final IQM per run, steps, wall-clock minutes).
 """
@@ -51,7 +51,7 @@ def references(env_id: str, seeds: list[int]) -> dict[str, float]:
     expected error on ``seeds`` (training-range seeds only)."""
     import gymnasium as gym
 
-    from agents import floors
+    from agents.benchmark import floors
     from auv_follow_env.tiers import check_training_seeds
     from controllers import make_controller
     from controllers.evaluation import evaluate_batched

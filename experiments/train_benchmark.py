@@ -22,8 +22,11 @@ from pathlib import Path
 
 import yaml
 
-from agents.compare import compare, plot_learning_curves, summary_markdown
-from agents.train import TrainConfig, load_agent, train, versions
+from agents.benchmark.compare import compare, plot_learning_curves, summary_markdown
+from agents.training.config import TrainConfig
+from agents.training.loading import load_agent
+from agents.training.rundir import versions
+from agents.training.runner import train
 from experiments.outputs import output_path
 
 
@@ -95,7 +98,7 @@ def report(args: Args) -> None:
     out.mkdir(parents=True, exist_ok=True)
     episodes.to_csv(out / "benchmark_episodes.csv", index=False)
     summary.to_csv(out / "benchmark.csv")
-    from agents.compare import plot_summary
+    from agents.benchmark.compare import plot_summary
 
     plot_summary(episodes, out / "benchmark.png", title=f"{args.env_id}, test seeds {args.test_seeds[0]}-"
                  f"{args.test_seeds[-1]}")
@@ -129,7 +132,8 @@ def report(args: Args) -> None:
               "python experiments/train_benchmark.py --stage report", "```", "",
               f"Training seeds: residual {args.residual_seed}, scratch {args.scratch_seed} (training env i "
               f"is seeded seed + i, later episodes continue its generator); EvalCallback seed 500; held-out test "
-              f"seeds {args.test_seeds}. Hyperparameters: agents/hyperparams/{args.algo}.yml (resolved copy in "
+              f"seeds {args.test_seeds}. Hyperparameters: agents/training/hyperparams/{args.algo}.yml "
+              "(resolved copy in "
               "each run's config.yaml).", "",
               "Versions: " + ", ".join(f"{k} {val}" for k, val in v.items()), "",
               "![benchmark](benchmark.png)", "", "![learning curves](learning_curves.png)", ""]

@@ -1,4 +1,4 @@
-"""RL baselines that generalise (issue 12, item 4): train on a v1 tier's training
+"""RL baselines that generalise: train on a v1 tier's training
 distribution, never on its test seeds, on a wall-clock budget per run.
 
     python experiments/train_tiers.py --method ppo-scratch --seed 0 --minutes 12
@@ -58,8 +58,9 @@ def parse(argv: list[str] | None = None) -> Args:
 
 
 def train_one(args: Args) -> Path:
-    from agents.benchmark import resolve_tier
-    from agents.train import TrainConfig, train
+    from agents.benchmark.protocol import resolve_tier
+    from agents.training.config import TrainConfig
+    from agents.training.runner import train
 
     algo, mode, vec = METHODS[args.method]
     _, env_id = resolve_tier(args.tier)

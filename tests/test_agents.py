@@ -10,8 +10,11 @@ import yaml
 
 import auv_follow_env  # noqa: F401
 from agents.cli import main
-from agents.residual import ResidualWrapper, make_residual_wrapper, residual_obs_dim
-from agents.train import TrainConfig, load_agent, load_hyperparams, train
+from agents.training.config import TrainConfig, load_hyperparams
+from agents.training.history import residual_obs_dim
+from agents.training.loading import load_agent
+from agents.training.residual import ResidualWrapper, make_residual_wrapper
+from agents.training.runner import train
 from controllers import make_controller
 
 ENV = "AUVFollow-S4-v0"

@@ -1,4 +1,4 @@
-"""Agents at the edges (issue 14): normalisation statistics without pickle, every CLI error
+"""Agents at the edges: normalisation statistics without pickle, every CLI error
 before any work, run names, Ctrl-C, checkpoints, progress output and the residual agent's
 observation check."""
 
@@ -20,8 +20,11 @@ import pytest
 import yaml
 
 from agents.cli import main
-from agents.obs_stats import FORMAT, ObsStats, read_obs_stats, write_obs_stats
-from agents.train import ConfigError, TrainConfig, _Progress, check_hyperparams, evaluate_agent, load_agent, train
+from agents.training.config import ConfigError, TrainConfig, check_hyperparams
+from agents.training.loading import evaluate_agent, load_agent
+from agents.training.obs_stats import FORMAT, ObsStats, read_obs_stats, write_obs_stats
+from agents.training.runner import train
+from agents.training.sb3 import _Progress
 
 ROOT = Path(__file__).resolve().parents[1]
 RUNS = ROOT / "results" / "agents" / "runs"
@@ -120,7 +123,7 @@ def test_missing_statistics_is_an_error_naming_the_file(tmp_path, capsys):
     marker = tmp_path / "pwned"
     (run / "vecnormalize.pkl").write_bytes(pickle.dumps(_Marker(str(marker))))
     (run / "vecnormalize.json").unlink()
-    with pytest.raises(FileNotFoundError, match=r"vecnormalize\.json are missing.*python -m agents.obs_stats"):
+    with pytest.raises(FileNotFoundError, match=r"vecnormalize\.json are missing.*python -m agents.training.obs_stats"):
         load_agent(run)
     with pytest.raises(SystemExit) as exc:
         main(["evaluate", str(run), "--seeds", "1000", "--no-progress"])
@@ -263,12 +266,12 @@ def test_evaluate_garbage_model_names_the_file(tmp_path, capsys):
 
 
 def test_evaluate_out_directory_refused_before_evaluating(tmp_path, capsys, monkeypatch):
-    import agents.train
+    import agents.training.loading
 
     def boom(*a, **k):
         raise AssertionError("evaluated although --out was refused")
 
-    monkeypatch.setattr(agents.train, "evaluate_agent", boom)
+    monkeypatch.setattr(agents.training.loading, "evaluate_agent", boom)
     with pytest.raises(SystemExit) as exc:
         main(["evaluate", str(SCRATCH_RUN), "--out", str(tmp_path), "--no-progress"])
     assert exc.value.code == 2

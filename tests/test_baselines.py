@@ -104,7 +104,7 @@ def test_our_controllers_can_be_the_base_of_a_residual_agent(name):
     import gymnasium as gym
 
     from agents.cli import build_parser
-    from agents.residual import ResidualWrapper
+    from agents.training.residual import ResidualWrapper
 
     env = ResidualWrapper(gym.make("AUVFollow-S4-v0", episode_s=1.0, steady_start_s=0.5), controller=name)
     obs, _ = env.reset(seed=0)

@@ -1,4 +1,4 @@
-"""The batched training path (issue 22 items 1-3): the observation builder, the residual that
+"""The batched training path: the observation builder, the residual that
 the base's disturbance observer does not cancel, the batched training env, bppo runs."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ import pytest
 import yaml
 
 import auv_follow_env  # noqa: F401
-from agents.batched_env import BatchedTrainEnv
-from agents.batched_obs import ESTIMATOR_DIM, ESTIMATOR_INDEX, ObservationBuilder
-from agents.residual import ResidualWrapper
+from agents.training.batched_env import BatchedTrainEnv
+from agents.training.batched_obs import ESTIMATOR_DIM, ESTIMATOR_INDEX, ObservationBuilder
+from agents.training.residual import ResidualWrapper
 from auv_follow_env.layout import OBS_DIM, OBS_INDEX
 from controllers import DisturbanceObserver, TargetEstimator, make_controller
 
@@ -100,7 +100,7 @@ def test_constant_residual_moves_the_follower_by_the_offset_the_nominal_model_pr
 
 
 def test_a_run_saved_before_issue_22_is_evaluated_with_the_feed_it_was_trained_with():
-    from agents.residual import ResidualPolicy
+    from agents.training.residual import ResidualPolicy
 
     spec = gym.make(HARD).unwrapped.task_spec
     old = ResidualPolicy(None, spec, {"controller": "PROPOSED_KF_DOB", "scale": 0.2, "history_len": 4})
@@ -232,7 +232,7 @@ def test_random_phase_desynchronises_the_first_episodes():
 
 def test_bppo_run_directory_load_evaluate_and_resume(tmp_path):
     from agents.cli import main
-    from agents.train import evaluate_agent, load_agent
+    from agents.training.loading import evaluate_agent, load_agent
 
     common = ["--algo", "bppo", "--env", "AUVFollow-Easy-v1", "--mode", "residual", "--controller",
               "PROPOSED_KF_DOB", "--n-envs", "16", "--hp", "n_steps=8", "--hp", "batch_size=64",
@@ -264,7 +264,7 @@ def test_readme_documents_the_estimator_block_field_by_field():
     import re
     from pathlib import Path
 
-    from agents.batched_obs import ESTIMATOR_FIELDS
+    from agents.training.batched_obs import ESTIMATOR_FIELDS
 
     text = (Path(__file__).resolve().parent.parent / "agents" / "README.md").read_text()
     rows = re.findall(r"^\| (\d+) \| `(est_\w+|dob_\w+)` \| ([^|]+) \|", text, flags=re.M)
@@ -278,7 +278,7 @@ def test_bppo_options_train_load_and_act(tmp_path, pk):
     observations only (the privileged critic is not needed to act) and its GRU state restarts
     with each episode: the same seed twice gives the same episode."""
     from agents.cli import main
-    from agents.train import evaluate_agent, load_agent
+    from agents.training.loading import evaluate_agent, load_agent
 
     assert main(["train", "--algo", "bppo", "--env", "AUVFollow-Easy-v1", "--mode", "scratch", "--n-envs", "8",
                  "--hp", "n_steps=8", "--hp", "batch_size=32", "--hp", f"policy_kwargs={pk}", "--timesteps", "128",
@@ -309,7 +309,7 @@ def test_linear_lr_schedule_decays_to_zero_at_the_budget(tmp_path):
 
 
 def test_bppo_rejects_an_unknown_lr_schedule_and_a_non_bool_option():
-    from agents.batched_ppo import check_bppo_hyperparams
+    from agents.training.batched_ppo import check_bppo_hyperparams
 
     with pytest.raises(ValueError, match=r"lr_schedule='cosine'.*constant.*linear"):
         check_bppo_hyperparams({"lr_schedule": "cosine"})
@@ -321,7 +321,7 @@ def test_linear_skip_starts_at_zero_and_adds_a_linear_map():
     """The skip path starts at zero (same initial policy as without it) and adds W x to the mean."""
     import torch
 
-    from agents.batched_ppo import _build_net, _policy_kwargs
+    from agents.training.batched_ppo import _build_net, _policy_kwargs
 
     x = torch.linspace(-1.0, 1.0, 5 * 7).reshape(5, 7)
     torch.manual_seed(3)
@@ -345,7 +345,7 @@ def test_observation_statistics_with_a_window_forget_old_samples():
     mean 0 -> 1/2 -> 3/4; variance 1/4, then (1/4 * 100 + (1 - 1/2)^2 * 100 * 100 / 200) / 200
     = 0.1875 (Chan's update with the count capped at 100; by hand). Without a window the
     second batch of ones gives mean 2/3."""
-    from agents.batched_ppo import _RunningMeanStd
+    from agents.training.batched_ppo import _RunningMeanStd
 
     r = _RunningMeanStd((), window=100)
     r.update(np.zeros(100))
@@ -357,14 +357,14 @@ def test_observation_statistics_with_a_window_forget_old_samples():
     for x in (np.zeros(100), np.ones(100), np.ones(100)):
         plain.update(x)
     assert plain.mean == pytest.approx(2 / 3, abs=1e-6)
-    from agents.batched_ppo import check_bppo_hyperparams
+    from agents.training.batched_ppo import check_bppo_hyperparams
 
     with pytest.raises(ValueError, match=r"obs_norm_window=-5 is invalid"):
         check_bppo_hyperparams({"obs_norm_window": -5})
 
 
 def test_the_residual_section_sits_between_default_and_the_env_section(tmp_path):
-    from agents.train import load_hyperparams
+    from agents.training.config import load_hyperparams
 
     f = tmp_path / "bppo.yml"
     f.write_text("default:\n  gamma: 0.9\n  n_epochs: 3\n  ent_coef: 0.1\nresidual:\n  gamma: 0.5\n  n_epochs: 4\n"
@@ -380,7 +380,7 @@ def test_the_residual_section_sits_between_default_and_the_env_section(tmp_path)
 # --- distillation (teacher -> student) ----------------------------------------------------------
 
 def test_mix_probability_falls_linearly_to_zero_at_half_the_distillation():
-    from agents.batched_ppo import mix_probability
+    from agents.training.batched_ppo import mix_probability
 
     # by hand: 1 - steps / (distill / 2), floored at 0
     assert [mix_probability(s, 1000) for s in (0, 125, 250, 500, 900)] == pytest.approx([1.0, 0.75, 0.5, 0.0, 0.0])
@@ -393,7 +393,7 @@ def _teacher_env():
 
 
 def test_teacher_acts_first_then_the_student_and_its_observer_hears_the_applied_force():
-    from agents.batched_ppo import _Teacher, _teacher_step
+    from agents.training.batched_ppo import _Teacher, _teacher_step
 
     env = _teacher_env()
     start = np.ones(4, dtype=bool)
@@ -416,7 +416,7 @@ def test_teacher_acts_first_then_the_student_and_its_observer_hears_the_applied_
 def test_a_perfect_link_teacher_ignores_the_packets():
     """On a perfect link the teacher sees the present target from the env's info, so its label
     does not change when the packet fields of the raw observation are scrambled."""
-    from agents.batched_ppo import _Teacher
+    from agents.training.batched_ppo import _Teacher
     from auv_follow_env.layout import OBS_INDEX_V1
 
     env = _teacher_env()
@@ -444,7 +444,7 @@ def test_a_perfect_link_teacher_ignores_the_packets():
      "AUVFollow-Easy-v1", r"recurrent=True"),
 ])
 def test_distillation_options_are_checked(hp, mode, env_id, match):
-    from agents.batched_ppo import _check_teacher
+    from agents.training.batched_ppo import _check_teacher
 
     with pytest.raises(ValueError, match=match):
         _check_teacher(hp, mode, env_id)
@@ -456,7 +456,7 @@ def test_a_distilled_run_imitates_first_then_runs_ppo(tmp_path):
     import csv
 
     from agents.cli import main
-    from agents.train import evaluate_agent, load_agent
+    from agents.training.loading import evaluate_agent, load_agent
 
     assert main(["train", "--algo", "bppo", "--env", "AUVFollow-Easy-v1", "--mode", "scratch", "--n-envs", "8",
                  "--hp", "n_steps=8", "--hp", "batch_size=32", "--hp", "teacher=PROPOSED_KF_DOB",

@@ -12,17 +12,11 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from agents.benchmark import (
-    evaluate_tier,
-    goal_check,
-    iqm,
-    leaderboard,
-    parse_policy,
-    probability_of_improvement,
-    resolve_tier,
-    stratified_bootstrap_ci,
-    tier_test_seeds,
-)
+from agents.benchmark.evaluation import evaluate_tier
+from agents.benchmark.leaderboard import goal_check, leaderboard
+from agents.benchmark.policies import parse_policy
+from agents.benchmark.protocol import resolve_tier, tier_test_seeds
+from agents.benchmark.stats import iqm, probability_of_improvement, stratified_bootstrap_ci
 from agents.cli import main
 
 V0_AGENT = (Path(__file__).resolve().parent.parent / "results" / "agents" / "runs"
@@ -190,7 +184,7 @@ def test_tier_restriction_scores_a_policy_on_its_tiers_only():
 
 
 def test_cache_reuses_episodes_only_for_committed_code(tmp_path):
-    from agents.benchmark import _code_fingerprint
+    from agents.benchmark.evaluation import _code_fingerprint
 
     specs = [parse_policy("PID"), parse_policy("PROPOSED")]
     a = evaluate_tier(specs, "S1", [1000], progress=False, cache_dir=tmp_path)

@@ -1,4 +1,4 @@
-"""The structured target filter ``OU0`` (issue 20): no sway, OU speed and turn rate, in numba.
+"""The structured target filter ``OU0``: no sway, OU speed and turn rate, in numba.
 
 Expected values are worked out by hand: a constant-turn target is a circular arc; a straight
 OU run has its speed's closed-form integral; the Jacobian is checked against central

@@ -1,4 +1,4 @@
-"""The SIMD sin/cos polynomial (``sincos="simd"``, the default since issue 23; formerly the opt-in
+"""The SIMD sin/cos polynomial (``sincos="simd"``, the default since 0.2.0; formerly the opt-in
 ``fast_math``) against glibc's (``sincos="libm"``), and what it does (and does not do) to results.
 
 The reference values are numpy's extended-precision (x87, 64-bit mantissa) sin/cos, which

@@ -1,4 +1,4 @@
-"""Floors per tier (agents/floors.py): the information floor against closed forms and Monte
+"""Floors per tier (agents/benchmark/floors.py): the information floor against closed forms and Monte
 Carlo, the packets recovered from the observations, the perfect link, the leaderboard rows."""
 
 from __future__ import annotations
@@ -12,8 +12,9 @@ import pytest
 import scipy.linalg
 
 import auv_follow_env  # noqa: F401
-from agents import floors
-from agents.benchmark import leaderboard
+from agents.benchmark import floors
+from agents.benchmark.leaderboard import leaderboard
+from auv_follow_env import perfect_link
 
 
 def _periodic(period: int, latency: int, T: int, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -207,7 +208,7 @@ def _substitution_gap(env_kwargs: dict, seeds: list[int]) -> float:
     gap = 0.0
     start = np.ones(len(seeds), dtype=bool)
     for _ in range(300):
-        seen = floors.perfect_link_observation(obs, info["true_target"], info["follower_pose"], spec.p_d)
+        seen = perfect_link.perfect_link_observation(obs, info["true_target"], info["follower_pose"], spec.p_d)
         gap = max(gap, float(np.abs(seen.astype(np.float64) - obs).max()))
         act, _ = pol.predict(obs, episode_start=start)
         start[:] = False
@@ -223,7 +224,7 @@ def test_perfect_link_observation_equals_the_perfect_link_overrides():
     base = {"scenario": "S4", "target_speed_std": 0.05, "target_yaw_rate_std": 0.06, "target_surge_amp": 0.0,
             "target_yaw_rate_amp": 0.0, "thruster_tc_s": 0.3, "thruster_rate": 1.5, "current_speed": 0.1,
             "current_speed_std": 0.03, "warmup_s": 4.0}
-    assert _substitution_gap({**base, **floors.perfect_link_overrides(0.05)}, [5, 6, 7]) < 2e-6
+    assert _substitution_gap({**base, **perfect_link.perfect_link_overrides(0.05)}, [5, 6, 7]) < 2e-6
     real = {**base, "update_period_s": 2.0, "latency_s": 1.5, "fix_sigma_m": 0.05}
     assert _substitution_gap(real, [5, 6, 7]) > 0.1
 
@@ -275,15 +276,15 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="follower='NOPE'"):
         floors.record_episodes("Easy", [1], "NOPE")
     with pytest.raises(ValueError, match="obs has shape"):
-        floors.perfect_link_observation(np.zeros((2, 16)), np.zeros((2, 6)), np.zeros((2, 3)), (0, 0))
+        perfect_link.perfect_link_observation(np.zeros((2, 16)), np.zeros((2, 6)), np.zeros((2, 3)), (0, 0))
 
 
 def test_benchmark_with_floors_and_report(tmp_path):
     """benchmark(floors=True): the floors are reference rows (never the best classical), the
     leaderboard gets gap_closed (0 for the best classical), the Markdown its column, and the HTML
     report marks them and replays a competitor, not a floor."""
-    from agents.benchmark import benchmark
-    from agents.report import write_report
+    from agents.benchmark.report import write_report
+    from agents.benchmark.run import benchmark
 
     seeds = [1000000, 1000001, 1000002]
     res = benchmark(["PROPOSED", "PROPOSED_KF"], tiers=["Easy"], seeds=seeds, floors=True, out_dir=tmp_path,

@@ -1,12 +1,12 @@
 """The paper's ids are frozen *in behaviour*: v0 trajectories must stay within a tolerance of the
-golden arrays recorded from ``main`` at 32b9c2b (glibc libm sin/cos, before the SIMD sin/cos
-became the default; issue 23).
+golden arrays recorded before 0.2.0 (glibc libm sin/cos, before the SIMD sin/cos became the
+default).
 
 For S1-S4 (``AUVFollow-S{n}-v0``) and seeds 0-2, two policies are run for a full episode:
 PROPOSED and uniform random actions (numpy ``default_rng(1000 + seed)``). Every step's
 observation, reward, ``true_target``, ``true_reference``, ``follower_pose`` and
 ``tracking_error`` (the reset's included, with reward 0) are recorded in
-``tests/data/frozen_v0.npz``. The contract (issue 23):
+``tests/data/frozen_v0.npz``. The contract:
 
 * float64 arrays (reward and the info arrays) within 1e-9 relative, or 1e-12 absolute where the
   value is near zero (``|got - golden| <= 1e-12 + 1e-9 |golden|``);
@@ -204,7 +204,7 @@ def write() -> None:
     print(f"wrote {DATA} ({DATA.stat().st_size / 1e6:.2f} MB)")
 
 
-_LIBM = {"sincos": "libm"}  # the path the golden arrays were recorded with (the default until issue 23)
+_LIBM = {"sincos": "libm"}  # the path the golden arrays were recorded with (the 0.1.0 default)
 
 if __name__ == "__main__":
     if "--write" in sys.argv:

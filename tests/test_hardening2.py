@@ -1,4 +1,4 @@
-"""Hardening II (issue 21): each test takes the input of a reproducer in
+"""Hardening II (CHANGELOG.md, 0.2.0): each test takes the input of a reproducer in
 /work/shared/reproducers (named in its docstring) and asserts the fixed behaviour.
 
 Item map: 1 xss_kind_tier.sh -> test_report_escapes_every_value_from_the_folder,
@@ -32,9 +32,14 @@ import pytest
 import yaml
 
 import agents.benchmark as B
-from agents.benchmark import benchmark, load_result, parse_policy
+import agents.benchmark.evaluation as BE
+import agents.benchmark.outputs as BO
+import agents.benchmark.run as BR
+from agents.benchmark.outputs import load_result
+from agents.benchmark.policies import parse_policy
+from agents.benchmark.report import write_report
+from agents.benchmark.run import benchmark
 from agents.cli import main
-from agents.report import write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 LEARNED_RUN = ROOT / "results" / "benchmark" / "runs" / "ppo-scratch" / "ppo-Hard-scratch-seed0"
@@ -140,15 +145,15 @@ def test_report_never_loads_a_model_file(bench, run_copy, tmp_path, monkeypatch)
     # keep the folder consistent (else it is refused as mixed): rewrite every stamp alike
     (b / "benchmark.json").write_text(json.dumps(prov, indent=1))
     res = load_result(bench)
-    B._write_parquet(res.episodes, b / "episodes.parquet", prov)
-    B._write_csv(res.leaderboard, b / "leaderboard.csv", prov)
-    B._write_parquet(res.traces, b / "traces.parquet", prov)
-    import agents.train
+    BO._write_parquet(res.episodes, b / "episodes.parquet", prov)
+    BO._write_csv(res.leaderboard, b / "leaderboard.csv", prov)
+    BO._write_parquet(res.traces, b / "traces.parquet", prov)
+    import agents.training.loading
 
     def no_load(*a, **k):
         raise AssertionError("report loaded a model")
 
-    monkeypatch.setattr(agents.train, "load_agent", no_load)
+    monkeypatch.setattr(agents.training.loading, "load_agent", no_load)
     page = write_report(b, replay_policy="L").read_text()
     assert not marker.exists()
     assert "Replay: L on Hard, seed 3000000" in page  # the learned episode comes from traces.parquet
@@ -164,7 +169,7 @@ def test_report_replay_equals_a_fresh_episode(bench):
     """The stored trace is the episode itself: PROPOSED's recorded forces equal a re-run's."""
     import gymnasium as gym
 
-    from agents.report import rollout_episode
+    from agents.benchmark.traces import rollout_episode
     from controllers import make_controller
 
     t = load_result(bench).traces
@@ -180,7 +185,7 @@ def test_report_replay_equals_a_fresh_episode(bench):
 def test_policy_kwargs_parsed_without_eval():
     import torch.nn as nn
 
-    from agents.zoo_parse import parse_zoo_value
+    from agents.training.zoo_parse import parse_zoo_value
 
     assert parse_zoo_value("dict(net_arch=dict(pi=[64, 64], vf=[32]), activation_fn=nn.Tanh, log_std_init=-1.0)") \
         == {"net_arch": {"pi": [64, 64], "vf": [32]}, "activation_fn": nn.Tanh, "log_std_init": -1.0}
@@ -193,7 +198,7 @@ def test_policy_kwargs_parsed_without_eval():
     "dict(a=nn.__builtins__)", "dict(a=__import__('os'))", "dict(a=nn.Module)", "dict(a=(lambda: 1)())",
     "dict(**{'a': 1})", "dict(a=1 + 1)", "dict(a=[x for x in 'ab'])", "dict(a=open)", "dict(a="])
 def test_policy_kwargs_escape_attempts_are_refused(text, tmp_path, capsys):
-    from agents.zoo_parse import parse_zoo_value
+    from agents.training.zoo_parse import parse_zoo_value
 
     with pytest.raises(ValueError, match="not allowed|keyword arguments only|not a valid expression"):
         parse_zoo_value(text)
@@ -207,7 +212,7 @@ def test_policy_kwargs_escape_attempts_are_refused(text, tmp_path, capsys):
 
 
 def test_policy_kwargs_from_a_hyperparameter_yaml_is_not_evaluated(tmp_path):
-    from agents.train import load_hyperparams
+    from agents.training.config import load_hyperparams
 
     f = tmp_path / "ppo.yml"
     f.write_text("default:\n  policy_kwargs: \"dict(a=nn.__builtins__['__import__']('os'))\"\n")
@@ -219,7 +224,7 @@ def test_policy_kwargs_from_a_hyperparameter_yaml_is_not_evaluated(tmp_path):
 
 @pytest.mark.parametrize("name", ["../../x", "a/b", "..", ".", "", "a\\b"])
 def test_sweep_name_cannot_leave_storage(name, tmp_path, capsys):
-    from agents.sweep import SweepConfig
+    from agents.benchmark.sweep import SweepConfig
 
     with pytest.raises(ValueError, match="name="):
         SweepConfig(name=name, storage=str(tmp_path)).validate()
@@ -234,21 +239,26 @@ def test_sweep_name_cannot_leave_storage(name, tmp_path, capsys):
 # --- item 5: the cache ---------------------------------------------------------------------------
 
 def test_cache_key_covers_the_benchmark_code_and_package_versions(monkeypatch):
-    """stale_cache.sh changes agents/obs_stats.py: the key must change with it (and with versions)."""
-    assert {"agents/benchmark.py", "agents/obs_stats.py"} <= set(B._EPISODE_CODE)
+    """stale_cache.sh changes agents/training/obs_stats.py: the key must change with it (and with versions)."""
+    def covered(path: str) -> bool:
+        return any(path == p or path.startswith(p.rstrip("/") + "/") for p in BE._EPISODE_CODE)
+
+    for path in ("agents/training/obs_stats.py", "agents/training/batched_ppo.py", "agents/benchmark/evaluation.py",
+                 "agents/benchmark/policies.py", "agents/benchmark/protocol.py", "controllers/pid.py"):
+        assert covered(path), path
     spec = parse_policy("PID")
-    k0 = B._entry_key(spec, None, "AUVFollow-Hard-v1", SEEDS, "code-a")
-    assert B._entry_key(spec, None, "AUVFollow-Hard-v1", SEEDS, "code-b") != k0
+    k0 = BE._entry_key(spec, None, "AUVFollow-Hard-v1", SEEDS, "code-a")
+    assert BE._entry_key(spec, None, "AUVFollow-Hard-v1", SEEDS, "code-b") != k0
     for pkg in ("torch", "stable_baselines3", "casadi", "numpy"):
-        v = B._package_versions()
-        monkeypatch.setattr(B, "_package_versions", lambda v=v, pkg=pkg: {**v, pkg: "0.0-other"})
-        assert B._entry_key(spec, None, "AUVFollow-Hard-v1", SEEDS, "code-a") != k0, pkg
+        v = BE._package_versions()
+        monkeypatch.setattr(BE, "_package_versions", lambda v=v, pkg=pkg: {**v, pkg: "0.0-other"})
+        assert BE._entry_key(spec, None, "AUVFollow-Hard-v1", SEEDS, "code-a") != k0, pkg
         monkeypatch.undo()
 
 
 @pytest.mark.parametrize("damage", ["truncated", "nan", "wrong_seeds"])
 def test_broken_cache_entry_is_recomputed_not_trusted(damage, tmp_path, monkeypatch):
-    monkeypatch.setattr(B, "_code_fingerprint", lambda: "fixed")
+    monkeypatch.setattr(BE, "_code_fingerprint", lambda: "fixed")
     specs = [parse_policy("PID")]
     fresh = B.evaluate_tier(specs, "S1", [1000, 1001], progress=False, cache_dir=tmp_path)
     (entry,) = tmp_path.glob("*.parquet")
@@ -278,7 +288,7 @@ def test_interrupted_write_keeps_the_previous_outputs(bench, tmp_path, monkeypat
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(B, "plot_leaderboard", boom)
+    monkeypatch.setattr(BO, "plot_leaderboard", boom)
     with pytest.raises(KeyboardInterrupt):
         benchmark(["PID", "PROPOSED"], ["Hard"], seeds=[3000010, 3000011], out_dir=b, n_resamples=50,
                   progress=False)
@@ -350,7 +360,7 @@ def test_interrupted_run_is_refused(run_copy, tmp_path, capsys):
 
 @pytest.mark.parametrize("field,value", [("norm_obs", False), ("clip_obs", 5.0), ("epsilon", 1e-4)])
 def test_statistics_contradicting_config_are_refused(run_copy, tmp_path, field, value):
-    from agents.train import load_agent
+    from agents.training.loading import load_agent
 
     r = _copy(run_copy, tmp_path / "r")
     stats = json.loads((r / "vecnormalize.json").read_text())
@@ -476,7 +486,7 @@ def test_refusals_are_one_line_before_any_work(tmp_path, capsys, monkeypatch):
     def no_work(*a, **k):
         raise AssertionError("work started before the refusal")
 
-    monkeypatch.setattr(B, "evaluate_tier", no_work)
+    monkeypatch.setattr(BR, "evaluate_tier", no_work)
     a_file = tmp_path / "f.txt"
     a_file.write_text("x")
     cases = [(["benchmark", "--tiers", "S1", "--policies", "PID", "--out", str(a_file)], "--out"),
@@ -495,19 +505,19 @@ def test_ctrl_c_in_benchmark_and_report_is_one_line_exit_130(capsys, monkeypatch
     def interrupt(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(B, "evaluate_tier", interrupt)
+    monkeypatch.setattr(BR, "evaluate_tier", interrupt)
     argv = ["benchmark", "--tiers", "S1", "--policies", "PID", "--no-progress", "--out", str(tmp_path / "b")]
     assert main(argv) == 130
     assert capsys.readouterr().err.strip().splitlines()[-1] == \
         "auv-follow benchmark: interrupted (nothing half-written was kept)"
-    import agents.report
+    import agents.benchmark.report
 
-    monkeypatch.setattr(agents.report, "load_result", interrupt)
+    monkeypatch.setattr(agents.benchmark.report, "load_result", interrupt)
     assert main(["report", "--bench", str(tmp_path)]) == 130
 
 
 def test_sweep_failures_exit_1_in_one_line(capsys, monkeypatch):
-    import agents.sweep as S
+    import agents.benchmark.sweep as S
 
     def all_failed(cfg):
         raise S.SweepFailed("all 2 trial(s) of sweep 'x' failed; the last lines of the first error: boom")
@@ -531,7 +541,7 @@ def test_config_error_survives_pickling_across_ray():
     assert str(pickle.loads(pickle.dumps(exc))) == str(exc)
     import inspect
 
-    import agents.sweep as S
+    import agents.benchmark.sweep as S
 
     assert "except ConfigError" in inspect.getsource(S.run_trial)
 

@@ -21,6 +21,9 @@ import pandas as pd
 import pytest
 
 import agents.benchmark as B
+import agents.benchmark.evaluation as BE
+import agents.benchmark.outputs as BO
+import agents.benchmark.run as BR
 from agents.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -41,7 +44,7 @@ def _no_work(monkeypatch):
     def refuse(*a, **k):
         raise AssertionError("work started before the refusal")
 
-    monkeypatch.setattr(B, "evaluate_tier", refuse)
+    monkeypatch.setattr(BR, "evaluate_tier", refuse)
 
 
 def _module(tmp_path, monkeypatch, name, body):
@@ -78,7 +81,7 @@ def test_repeated_seeds_are_refused_by_the_cli_before_any_work(monkeypatch, caps
 
 def test_repeated_seeds_are_refused_by_the_library(monkeypatch):
     """dup_seeds.py's seeds, given to the library functions directly (the floors too)."""
-    from agents import floors
+    from agents.benchmark import floors
 
     seeds = [3000000, 3000000, 3000001]
     with pytest.raises(ValueError, match=r"repeats \[3000000\]"):
@@ -112,7 +115,7 @@ def test_a_seed_beyond_64_bits_is_a_one_line_refusal(monkeypatch, capsys):
 def test_seed_range_in_the_library():
     """seeds_overflow.py's seed in the library: the tables store seeds as 64-bit integers, so
     the largest accepted seed is 2**63 - 1 (int64 max) and the next one is refused."""
-    from agents import floors
+    from agents.benchmark import floors
     from controllers.evaluation import evaluate
 
     assert B.check_seed_list([0, 2**63 - 1]) == [0, 9223372036854775807]
@@ -171,7 +174,7 @@ def test_cache_of_a_module_class_policy_follows_its_source(tmp_path, monkeypatch
     """stale_cache_external.py: after editing a module:Class policy, --cache returned the old
     code's episodes. The edited module's cached run must equal a fresh run of it (and differ
     from the old code's, which pushes with another constant force)."""
-    monkeypatch.setattr(B, "_code_fingerprint", lambda: "fixed")  # the cache on, whatever git says
+    monkeypatch.setattr(BE, "_code_fingerprint", lambda: "fixed")  # the cache on, whatever git says
     src = HEAD + "        return np.full(o.shape[:-1] + (3,), VALUE), state\n"
     mod = tmp_path / "probe_ctrl_cache.py"
     name = _module(tmp_path, monkeypatch, "probe_ctrl_cache", src.replace("VALUE", "0.0"))
@@ -273,8 +276,8 @@ def test_cache_on_a_read_only_file_system(tmp_path, monkeypatch, capsys):
     def read_only(d, path):
         raise OSError(errno.EROFS, "Read-only file system", str(path))
 
-    monkeypatch.setattr(B, "_code_fingerprint", lambda: "fixed")
-    monkeypatch.setattr(B, "_write_atomic_parquet", read_only)
+    monkeypatch.setattr(BE, "_code_fingerprint", lambda: "fixed")
+    monkeypatch.setattr(BE, "_write_atomic_parquet", read_only)
     with pytest.warns(UserWarning, match="cannot store episodes there .Read-only file system"):
         res = B.benchmark(["PROPOSED"], ["Hard"], seeds=[3000000, 3000001], n_resamples=20, progress=False,
                           cache_dir=ro / "cache")
@@ -287,7 +290,7 @@ def test_out_on_a_full_file_system(tmp_path, monkeypatch, capsys):
     out = tmp_path / "b"
     assert main(["benchmark", *QUICK, "--policies", "PROPOSED", "--out", str(out)]) == 0
     before = _contents(out)
-    real = B._write_parquet
+    real = BO._write_parquet
     calls = {"n": 0}
 
     def full(df, path, prov):
@@ -296,7 +299,7 @@ def test_out_on_a_full_file_system(tmp_path, monkeypatch, capsys):
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
         return real(df, path, prov)
 
-    monkeypatch.setattr(B, "_write_parquet", full)
+    monkeypatch.setattr(BO, "_write_parquet", full)
     code, _, err = _cli(["benchmark", *QUICK, "--policies", "PID", "--out", str(out)], capsys)
     assert code == 1 and len(err) == 1
     assert err[0] == f"auv-follow benchmark: error: cannot write into {out} (No space left on device): its previous " \
@@ -311,7 +314,7 @@ def test_out_on_a_full_file_system(tmp_path, monkeypatch, capsys):
 def test_evaluate_and_compare_writes_fail_in_one_line(tmp_path, monkeypatch, capsys):
     """The same class in the other commands that write: evaluate's CSV and compare's four files
     go through a temporary file / folder; a failed write is one line and keeps the previous files."""
-    import agents.compare as C
+    import agents.benchmark.compare as C
     from agents.cli import _write_csv_atomic
 
     target = tmp_path / "eval.csv"
@@ -431,7 +434,7 @@ def test_a_batch_only_controller_is_benchmarked_and_replayed(tmp_path, monkeypat
 
 def test_sweep_default_output_is_ignored_by_git():
     """`auv-follow sweep` wrote results/sweeps/, which git did not ignore."""
-    from agents.sweep import SweepConfig
+    from agents.benchmark.sweep import SweepConfig
 
     storage = SweepConfig().storage
     assert storage == "results/tmp/sweeps"
@@ -465,7 +468,7 @@ def test_summary_of_a_hand_made_leaderboard():
                           _row("C1", "classical", 0.10, 0.09, 0.11), _row("C3", "classical", 0.30, 0.28, 0.33),
                           _row("C4", "classical", 0.40, 0.38, 0.43),
                           _row("information floor", "reference", 0.01, 0.01, 0.01)])
-    files = {k: Path("/r/b") / n for k, n in B.OUTPUT_FILES.items()}
+    files = {k: Path("/r/b") / n for k, n in BO.OUTPUT_FILES.items()}
     text = B.benchmark_summary(board, files, top=3)
     lines = text.splitlines()
     assert lines[0] == "Hard: 5 policies by steady_mean error IQM [95 % CI] in m; best classical C1"

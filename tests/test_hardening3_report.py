@@ -1,4 +1,4 @@
-"""Hardening III, the report (``auv-follow report``, agents/report.py).
+"""Hardening III, the report (``auv-follow report``, agents/benchmark/report.py).
 
 Defect map (reproducers in ../shared/reproducers/hardening3/): D1 report_partial_symlink.py ->
 test_partial_name_link_is_never_written_through (and the other writes: test_link_at_the_page_is_replaced_not_followed,
@@ -23,10 +23,10 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-import agents.report as R
-from agents.benchmark import benchmark
+import agents.benchmark.report as R
+from agents.benchmark.report import write_report
+from agents.benchmark.run import benchmark
 from agents.cli import main
-from agents.report import write_report
 
 SEEDS = [3000000, 3000001]  # the reproducers' quick-look seeds (Hard)
 

@@ -1,5 +1,5 @@
-"""Hardening III, the training entry points (``auv-follow train``, agents/train.py,
-agents/batched_ppo.py): every setting checked before any work, a diverged or failed run never
+"""Hardening III, the training entry points (``auv-follow train``, agents/training/,
+agents/training/batched_ppo.py): every setting checked before any work, a diverged or failed run never
 recorded as finished, writes that fail leave nothing half-written. Each test names the
 reproducer in ../shared/reproducers/hardening3/ whose input it is built on."""
 
@@ -67,7 +67,7 @@ def test_normalize_values_are_refused_before_work(tmp_path, capsys, algo, value,
 def test_bppo_honours_clip_obs_and_epsilon(tmp_path):
     """normalize_values.py: bppo trained with clip_obs=5.0 always clipped at 10 and wrote 10 into the
     statistics, so evaluate refused the finished run; now the run clips at 5 and loads."""
-    from agents.train import evaluate_agent, load_agent
+    from agents.training.loading import evaluate_agent, load_agent
 
     out = tmp_path / "runs"
     assert main(_train_args(out, "b", *_hp("normalize=dict(norm_obs=True, clip_obs=5.0, epsilon=1.0e-6)"))) == 0
@@ -86,7 +86,7 @@ def test_bppo_honours_clip_obs_and_epsilon(tmp_path):
 
 def test_bppo_training_clips_observations_at_the_asked_bound(tmp_path, monkeypatch):
     """normalize_values.py: the observations the network trains on are clipped at clip_obs."""
-    import agents.batched_ppo as bp
+    import agents.training.batched_ppo as bp
 
     seen = []
     real = bp._update
@@ -123,7 +123,7 @@ def _nan_actor(monkeypatch):
     """Make every new bppo network act NaN (its mean layer's bias), as a diverged one does."""
     import torch
 
-    import agents.batched_ppo as bp
+    import agents.training.batched_ppo as bp
 
     real = bp._build_net
 
@@ -140,7 +140,7 @@ def test_nan_actions_stop_training_and_the_run_is_not_finished(tmp_path, capsys,
     """bppo_nan_run.py: a run whose policy turned NaN was recorded as finished (interrupted: false, a
     model.zip of NaN weights). Now training stops at the first non-finite action with one line
     (exit code 1), config.yaml records result.failed, no model.zip is written and load_agent says why."""
-    from agents.train import load_agent
+    from agents.training.loading import load_agent
 
     _nan_actor(monkeypatch)
     out = tmp_path / "runs"
@@ -161,8 +161,9 @@ def test_nan_parameters_after_an_update_stop_training(tmp_path, monkeypatch):
     checked after every update; the checkpoint before the failure is kept."""
     import torch
 
-    import agents.batched_ppo as bp
-    from agents.train import TrainConfig, TrainingFailed, train
+    import agents.training.batched_ppo as bp
+    from agents.training.config import TrainConfig, TrainingFailed
+    from agents.training.runner import train
 
     real = bp._update
     calls = []
@@ -285,7 +286,7 @@ def test_net_arch_dict_builds_separate_actor_and_critic(tmp_path):
     loads and acts."""
     import torch
 
-    from agents.train import load_agent
+    from agents.training.loading import load_agent
 
     assert main(_train_args(tmp_path, "r", *_hp("policy_kwargs=dict(net_arch=dict(pi=[8], vf=[256, 256]))"))) == 0
     data = torch.load(tmp_path / "r" / "model.zip", weights_only=True)
@@ -368,7 +369,8 @@ def test_train_config_fields_of_the_wrong_type_are_refused(tmp_path, field, valu
     """The same class in the library API: a None or a string where TrainConfig needs a path, a
     bool or a number is a ConfigError naming the field (out_dir=None was a TypeError from pathlib;
     scale=None in scratch mode a TypeError from bppo's observation builder)."""
-    from agents.train import ConfigError, TrainConfig, train
+    from agents.training.config import ConfigError, TrainConfig
+    from agents.training.runner import train
 
     kw = {"algo": "bppo", "env_id": EASY, "mode": "scratch", "out_dir": str(tmp_path / "runs"), "n_envs": 8,
           "total_timesteps": 64, "eval_freq": 0, "checkpoint_freq": 0, "final_eval": False, "progress_bar": False,
@@ -414,7 +416,7 @@ def test_train_library_refuses_a_read_only_out_dir(tmp_path, monkeypatch):
     import agents.train as tr
 
     real = os.access
-    monkeypatch.setattr(tr.os, "access", lambda p, m: False if Path(p) == tmp_path else real(p, m))
+    monkeypatch.setattr(os, "access", lambda p, m: False if Path(p) == tmp_path else real(p, m))
     cfg = tr.TrainConfig(algo="bppo", env_id=EASY, mode="scratch", out_dir=str(tmp_path / "runs"))
     with pytest.raises(tr.ConfigError, match="cannot be written.*not writable") as e:
         tr.train(cfg)
@@ -447,8 +449,8 @@ def test_a_failed_model_write_leaves_no_temporary_file(tmp_path, capsys, monkeyp
 def test_statistics_and_config_writes_leave_no_temporary_file(tmp_path, monkeypatch):
     """write_errors.sh: write_obs_stats and the config.yaml writer keep the old file and remove
     their temporary file when the write fails."""
-    from agents.obs_stats import ObsStats, write_obs_stats
-    from agents.train import _write_yaml
+    from agents.training.obs_stats import ObsStats, write_obs_stats
+    from agents.training.rundir import _write_yaml
 
     stats = ObsStats(norm_obs=True, mean=np.zeros(2), var=np.ones(2), count=1.0, clip_obs=10.0, epsilon=1e-8)
     (tmp_path / "s.json").write_text("old")
@@ -477,7 +479,7 @@ def test_one_rule_for_integer_hyperparameters(key):
     """bppo_whole_float.py: distill_steps=1.0e+6 was refused as "must be a whole number" while
     n_steps=32.0 was accepted. Now every integer key takes a whole float (converted to int) or
     YAML's string 1e6 for 10**6 and refuses 32.5 and bools, with the same message."""
-    from agents.train import ConfigError, check_hyperparams
+    from agents.training.config import ConfigError, check_hyperparams
 
     whole = 4.0 if key == "torch_threads" else 32.0
     assert check_hyperparams("bppo", {key: whole})[key] == int(whole)
@@ -503,7 +505,7 @@ def test_whole_float_distill_steps_trains(tmp_path):
 def test_policy_kwargs_sizes_follow_the_same_rule():
     """bppo_whole_float.py, the same class inside policy_kwargs: net_arch [64.0] and gru_size 32.0
     are whole numbers; 8.5 is not."""
-    from agents.batched_ppo import _policy_kwargs
+    from agents.training.batched_ppo import _policy_kwargs
 
     pk = _policy_kwargs({"net_arch": [64.0, 32], "gru_size": 32.0})
     assert pk["net_arch"] == [64, 32] and pk["gru_size"] == 32 and type(pk["gru_size"]) is int
@@ -516,7 +518,7 @@ def test_the_committed_runs_still_load():
     policy_kwargs passes and builds the same network."""
     import torch
 
-    from agents.batched_ppo import _build_net, _policy_kwargs
+    from agents.training.batched_ppo import _build_net, _policy_kwargs
 
     root = Path(__file__).resolve().parent.parent / "results"
     models = sorted(root.glob("*/runs/**/model.zip"))

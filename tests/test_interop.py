@@ -340,9 +340,9 @@ def test_rl_zoo_reads_the_shipped_files_as_load_hyperparams_does(algo, tmp_path,
     import yaml
     from rl_zoo3.exp_manager import ExperimentManager
 
-    from agents.train import _eval_zoo, load_hyperparams
+    from agents.training.config import _eval_zoo, load_hyperparams
 
-    path = ROOT / "agents" / "hyperparams" / f"{algo}.yml"
+    path = ROOT / "agents" / "training" / "hyperparams" / f"{algo}.yml"
     sections = [k for k in yaml.safe_load(path.read_text()) if k not in ("default", "residual")]
     for env_id in sections + ["AUVFollow-Hard-v1"]:
         zoo = ExperimentManager(argparse.Namespace(), "ppo", env_id, str(tmp_path), config=str(path))
@@ -358,11 +358,11 @@ def test_rl_zoo_reads_the_shipped_files_as_load_hyperparams_does(algo, tmp_path,
 
 def test_rl_zoo_trains_with_the_shipped_ppo_file(tmp_path):
     """``python -m rl_zoo3.train --algo ppo --env AUVFollow-S4-v0 --gym-packages auv_follow_env
-    -conf agents/hyperparams/ppo.yml`` with the zoo's ``-n`` cut to 64 steps (PPO still collects
+    -conf agents/training/hyperparams/ppo.yml`` with the zoo's ``-n`` cut to 64 steps (PPO still collects
     one rollout of n_steps x n_envs = 4096 steps): it trains and saves, with the file's settings."""
     pytest.importorskip("rl_zoo3", reason="rl-zoo3 is not installed (pip install -e '.[dev]')")
     cmd = [sys.executable, "-m", "rl_zoo3.train", "--algo", "ppo", "--env", S4, "--gym-packages", "auv_follow_env",
-           "-conf", str(ROOT / "agents" / "hyperparams" / "ppo.yml"), "-n", "64", "-f", str(tmp_path),
+           "-conf", str(ROOT / "agents" / "training" / "hyperparams" / "ppo.yml"), "-n", "64", "-f", str(tmp_path),
            "--eval-freq", "-1", "--save-freq", "-1", "--seed", "0", "--num-threads", "1", "--verbose", "0"]
     res = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]

@@ -1,4 +1,4 @@
-"""Paired statistics of the leaderboard (issue 22): per-seed differences against the best
+"""Paired statistics of the leaderboard: per-seed differences against the best
 classical baseline on the same test seeds, worked out by hand."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import pandas as pd
 import pytest
 
-from agents.benchmark import leaderboard, paired_difference
+from agents.benchmark.leaderboard import leaderboard, paired_difference
 
 
 def _episodes(pairs, runs=("r",)):
@@ -53,7 +53,8 @@ def test_unknown_policy_is_refused():
 def test_a_residual_is_paired_with_its_own_base(tmp_path):
     """B best classical, C a weaker classical that is A's base: A - C per seed is
     0.5 - 0.9, 0.4 - 0.8, 0.3 - 0.7 = -0.4 each (by hand); the markdown names the base."""
-    from agents.benchmark import PolicySpec, leaderboard_markdown, residual_bases
+    from agents.benchmark.leaderboard import leaderboard_markdown
+    from agents.benchmark.policies import PolicySpec, residual_bases
 
     ep = _episodes([(0.5, 0.6), (0.4, 0.5), (0.3, 0.4)])
     ep = pd.concat([ep, pd.DataFrame([dict(tier="Hard", policy="C", kind="classical", run="", seed=s,

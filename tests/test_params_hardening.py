@@ -1,4 +1,4 @@
-"""Issue 14, items 1, 6 and 7: every number and sequence accepted in its natural forms, every
+"""Env parameters at the edges: every number and sequence accepted in its natural forms, every
 bound enforced with a message naming the argument, and seeds validated before anything changes."""
 
 from __future__ import annotations

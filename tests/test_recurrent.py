@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from agents.train import TrainConfig, load_agent, train
+from agents.training.config import TrainConfig
+from agents.training.loading import load_agent
+from agents.training.runner import train
 from controllers.evaluation import evaluate, evaluate_batched
 
 

@@ -1,4 +1,4 @@
-"""agents.report: the HTML page loads in a real headless browser (Debian's chromium through
+"""agents.benchmark.report: the HTML page loads in a real headless browser (Debian's chromium through
 selenium and /usr/bin/chromedriver) with no console errors and shows the leaderboard rows; in
 it, every policy has one colour in every chart, the best few are drawn and the others are in
 the legend, and no legend or label is cut off.
@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from agents.benchmark import benchmark
-from agents.report import binned_breakdown, write_report
+from agents.benchmark.report import binned_breakdown, write_report
+from agents.benchmark.run import benchmark
 
 CHROMEDRIVER = "/usr/bin/chromedriver"
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""agents.sweep: a CPU-only 2-trial Ray Tune sweep of a few thousand steps completes, and after
+"""agents.benchmark.sweep: a CPU-only 2-trial Ray Tune sweep of a few thousand steps completes, and after
 an (injected) crash of a trial the same call resumes it from its checkpoint."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import pytest
 
 pytest.importorskip("ray.tune", reason="ray[tune] is not installed: pip install -e .[sweep]")
 
-from agents.sweep import SweepConfig, sweep  # noqa: E402
-from agents.train import load_agent  # noqa: E402
+from agents.benchmark.sweep import SweepConfig, sweep  # noqa: E402
+from agents.training.loading import load_agent  # noqa: E402
 
 
 def test_two_trial_sweep_completes_and_resumes_after_a_crash(tmp_path):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agents.vec_adapter import NativeVecEnv
+from agents.training.vec_adapter import NativeVecEnv
 
 SHORT = {"episode_s": 1.0, "steady_start_s": 0.5}  # 20 steps per episode
 

@@ -395,7 +395,7 @@ print(sum(dyn.step_kernel_parallel.stats.cache_hits.values()), len(dyn.step_kern
 
 
 def test_parallel_kernel_is_cached_on_disk(tmp_path):
-    # issue 14 item 12: the threaded kernel is a module-level function, so its disk cache hits
+    # the threaded kernel is a module-level function, so its disk cache hits
     # in a new process and no further cache files appear
     import os
     import subprocess

@@ -1,23 +1,23 @@
 """What a learned agent observes and how its action reaches the env, for N envs at once.
 
 :class:`ObservationBuilder` is the one implementation behind every learned agent's
-observation: the batched training env (:mod:`agents.batched_env`), the single-env
-:class:`agents.residual.ResidualWrapper`, and the evaluation-time policies
-(:class:`agents.residual.ResidualPolicy`, :class:`agents.batched_ppo.BatchedAgent`). It runs
+observation: the batched training env (:mod:`agents.training.batched_env`), the single-env
+:class:`agents.training.residual.ResidualWrapper`, and the evaluation-time policies
+(:class:`agents.training.residual.ResidualPolicy`, :class:`agents.training.batched_ppo.BatchedAgent`). It runs
 on a batch (N, W) of raw AUVFollow observations with a per-env episode-start mask:
 
 * ``observe(raw, start)``: the agent's observation (N, D), float32: the env's own fields
   (16 on v0, 20 on v1), then optionally the base controller's action (3, residual agents),
   then optionally the **estimator block** (:data:`ESTIMATOR_FIELDS`, 18 fields), then
   optionally the finite-difference history of the delayed target's velocities
-  (:class:`agents.residual.DelayedTargetHistory`, 3 per lag; kept for v0, off by default on v1);
+  (:class:`agents.training.residual.DelayedTargetHistory`, 3 per lag; kept for v0, off by default on v1);
 * ``act(action)``: the env action (N, 3) for the agent's action in [-1, 1]^3: for a
   residual agent ``clip(a_base + scale * a, -1, 1)``, from scratch ``clip(a, -1, 1)``.
   Then every disturbance observer involved is told the force actually commanded,
   ``clip(F_base + scale * a * limits, -limits, limits)`` (residual) or ``a * limits``
   (scratch): the base's observer no longer takes the residual for a disturbance and
-  cancels it (issue 22). With a zero residual this is exactly what the base told its
-  observer itself, so a zero residual reproduces the base bit for bit.
+  cancels it, as it did in earlier versions. With a zero residual this is exactly what the
+  base told its observer itself, so a zero residual reproduces the base bit for bit.
 
 **The estimator block** is read through the public API only
 (``TargetEstimator.step(obs, reset_mask, commit=, with_cov=)``, ``DisturbanceObserver.d_hat``):
@@ -146,8 +146,8 @@ class ObservationBuilder:
         observation: ``"raw"`` or ``"estimator"`` (append :data:`ESTIMATOR_FIELDS`).
         history_len, history_stride: the finite-difference history (0: none).
         observer_feed: what the base's disturbance observer is told: ``"applied"`` (base +
-            residual, the force commanded) or ``"base"`` (only the base's own command, as before
-            issue 22: the observer then cancels a residual; kept to evaluate agents trained so).
+            residual, the force commanded) or ``"base"`` (only the base's own command, as in earlier
+            versions: the observer then cancels a residual; kept to evaluate agents trained so).
 
     The memory of every part (base controller, estimators, observers, history) restarts
     for the envs where ``start`` is set, and for all on the first call or a change of N.
@@ -156,7 +156,7 @@ class ObservationBuilder:
     def __init__(self, spec: Any, *, mode: str = "scratch", controller: str | None = None, scale: float = 0.2,
                  include_base_action: bool = True, observation: str = "raw", history_len: int = 0,
                  history_stride: int = 10, observer_feed: str = "applied") -> None:
-        from agents.residual import DelayedTargetHistory, _check
+        from agents.training.history import DelayedTargetHistory, _check
 
         _check_mode(mode)
         check_observation(observation)

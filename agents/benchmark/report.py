@@ -47,16 +47,14 @@ import gymnasium as gym
 import numpy as np
 import pandas as pd
 
-from agents.benchmark import (
-    _controllers,
-    load_result,
-    resolve_tier,
-    scores,
-)
-from agents.floors import CONTROL_FLOOR, INFORMATION_FLOOR, REFERENCE_KIND
-from auv_follow_env.layout import OBS_INDEX_V1
+from agents.benchmark.floors import CONTROL_FLOOR, INFORMATION_FLOOR, REFERENCE_KIND
+from agents.benchmark.leaderboard import scores
+from agents.benchmark.outputs import load_result
+from agents.benchmark.policies import _controllers
+from agents.benchmark.protocol import resolve_tier
+from agents.benchmark.traces import rollout_episode
 
-__all__ = ["write_report", "rollout_episode", "binned_breakdown", "SHOWN_PER_FAMILY"]
+__all__ = ["write_report", "binned_breakdown", "SHOWN_PER_FAMILY"]
 
 #: policies of each family drawn by default in the charts, per tier (the others: a legend click away)
 SHOWN_PER_FAMILY = 3
@@ -379,55 +377,6 @@ def _checked_policies(prov: dict, where: str) -> dict[str, str | None]:
     return out
 
 
-def rollout_episode(policy: Any, env_id: str, seed: int) -> pd.DataFrame:
-    """One episode, per step: time, follower pose, true target and reference, the target the
-    follower received (world frame), the policy's own reference (if it has one), forces and
-    along-/cross-track error."""
-    env = gym.make(env_id)
-    spec = env.unwrapped.task_spec
-    limits = np.asarray(spec.force_limits)
-    obs, info = env.reset(seed=int(seed))
-    if hasattr(policy, "reset"):
-        policy.reset()
-    rows, start = [], True
-    i = OBS_INDEX_V1
-    while True:
-        action, _ = policy.predict(obs, episode_start=np.array([start]), deterministic=True)
-        start = False
-        obs, _, term, trunc, info = env.step(action)
-        x, y, psi = (float(v) for v in info["follower_pose"])
-        tx, ty, tpsi = (float(v) for v in info["true_target"][:3])
-        rx, ry = (float(v) for v in info["true_reference"][:2])
-        c, s = np.cos(psi), np.sin(psi)
-        has = obs.shape[-1] <= i["has_packet"] or obs[i["has_packet"]] > 0.5
-        dx, dy = float(obs[i["target_dx"]]), float(obs[i["target_dy"]])
-        row = {"time": float(info["time"]), "follower_x": x, "follower_y": y, "follower_psi": psi,
-               "target_x": tx, "target_y": ty, "target_psi": tpsi, "ref_x": rx, "ref_y": ry,
-               "recv_x": x + c * dx - s * dy if has else np.nan, "recv_y": y + s * dx + c * dy if has else np.nan,
-               "err": float(info["tracking_error"])}
-        if obs.shape[-1] > i["packet_age"]:
-            row["packet_age"] = float(obs[i["packet_age"]])
-        f = np.clip(np.asarray(action, dtype=np.float64).reshape(-1)[:3], -1, 1) * limits
-        row.update({"F_u": f[0], "F_v": f[1], "F_r": f[2]})
-        if hasattr(policy, "reference"):
-            own = np.asarray(policy.reference(obs)).reshape(-1)[:3]
-            ox, oy = x + c * own[0] - s * own[1], y + s * own[0] + c * own[1]
-            # estimated target = own reference minus the offset p_d rotated by the estimated heading
-            opsi = psi + own[2] - spec.psi_d
-            px, py = spec.p_d
-            row.update({"own_ref_x": ox, "own_ref_y": oy,
-                        "est_x": ox - (np.cos(opsi) * px - np.sin(opsi) * py),
-                        "est_y": oy - (np.sin(opsi) * px + np.cos(opsi) * py)})
-        ex, ey = rx - x, ry - y
-        row["along_track"] = -(ex * np.cos(tpsi) + ey * np.sin(tpsi))  # > 0: follower ahead of the reference
-        row["cross_track"] = -(-ex * np.sin(tpsi) + ey * np.cos(tpsi))  # > 0: follower to port of it
-        rows.append(row)
-        if term or trunc:
-            break
-    env.close()
-    df = pd.DataFrame(rows)
-    df.attrs["force_limits"] = tuple(float(v) for v in limits)
-    return df
 
 
 def binned_breakdown(episodes: pd.DataFrame, condition: str, metric: str = "true_steady_mean",
@@ -440,7 +389,7 @@ def binned_breakdown(episodes: pd.DataFrame, condition: str, metric: str = "true
         ValueError: ``condition`` is not a column, or not finite numbers; ``bins`` is not a
             positive whole number.
     """
-    from agents.benchmark import iqm
+    from agents.benchmark.stats import iqm
 
     if condition not in episodes:
         raise ValueError(f"condition={condition!r} is not a column: valid conditions are "
@@ -754,7 +703,7 @@ def _columns_html(board: pd.DataFrame, gap: bool, has_base: bool) -> str:
 def _table_html(board: pd.DataFrame, styles: dict[str, _Style]) -> str:
     m0 = "true_steady_mean"
     has_base = board["base"].notna().any()
-    gap = board["gap_closed"].notna().any()  # floors present (agents/floors.py)
+    gap = board["gap_closed"].notna().any()  # floors present (agents/benchmark/floors.py)
     parts = [_columns_html(board, gap, has_base)]
     for tier, sub in board.groupby("tier", sort=False):
         best = sub["best_classical"].iloc[0]

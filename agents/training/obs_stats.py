@@ -4,12 +4,12 @@ SB3 saves a ``VecNormalize`` wrapper with :mod:`pickle`: loading such a file can
 arbitrary code. Evaluation needs only four things from it (the running mean and variance of
 the observations, the clip bound and epsilon), so training writes those, next to SB3's
 pickle, as JSON (``vecnormalize.json``; checkpoints ``model_vecnormalize_<steps>_steps.json``)
-and :func:`agents.train.load_agent` reads only that. SB3's pickle is kept for resuming
+and :func:`agents.training.load_agent` reads only that. SB3's pickle is kept for resuming
 training (``--resume``), which must restore the complete wrapper.
 
 Convert a pickle you trust (for instance a run trained before this format existed)::
 
-    python -m agents.obs_stats runs/<run>/vecnormalize.pkl   # writes runs/<run>/vecnormalize.json
+    python -m agents.training.obs_stats runs/<run>/vecnormalize.pkl   # writes runs/<run>/vecnormalize.json
 
 That command unpickles the file: run it only on files you would run as code.
 """
@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -172,7 +173,7 @@ def convert_pickle(pickle_path: str | Path, json_path: str | Path | None = None)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m agents.obs_stats", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m agents.training.obs_stats", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("pickles", nargs="+", type=Path, help="VecNormalize .pkl files you trust (they are unpickled)")
     args = p.parse_args(argv)
@@ -186,3 +187,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+#: a checkpoint's file stem: ``<prefix>_<steps>_steps``
+_CKPT = re.compile(r"^(?P<prefix>.+)_(?P<steps>\d+)_steps$")
+
+
+def _stats_path(model_path: Path, suffix: str) -> Path:
+    """The normalisation statistics saved with a model (``vecnormalize<suffix>``) or a checkpoint
+    (``<prefix>_vecnormalize_<steps>_steps<suffix>``); other names: ``vecnormalize<suffix>`` beside."""
+    m = _CKPT.match(model_path.stem)
+    if model_path.name != "model.zip" and m:
+        return model_path.with_name(f"{m['prefix']}_vecnormalize_{m['steps']}_steps{suffix}")
+    return model_path.with_name(f"vecnormalize{suffix}")

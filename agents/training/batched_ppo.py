@@ -1,15 +1,15 @@
 """Batched PPO in plain torch (CleanRL-style) on the native vector env: the training path
-``algo="bppo"`` of :func:`agents.train.train` (``python -m agents.cli train --algo bppo``).
+``algo="bppo"`` of :func:`agents.training.train` (``python -m agents.cli train --algo bppo``).
 
 Why not SB3 or a library: SB3's PPO steps the env through its ``VecEnv`` protocol with per-env
 Python bookkeeping and the residual wrapper ran the base controller one env at a time;
-issue 22 measured a lean batched PPO in plain torch at 3.3-5.1x the default PPO's env-steps
+we measured a lean batched PPO in plain torch at 3.3-5.1x the default PPO's env-steps
 per CPU-second and skrl 2.1.1 at 2.8x (skrl is not installed here). So this module is about
-400 lines: rollouts of ``n_steps`` on N envs (:class:`agents.batched_env.BatchedTrainEnv`:
+400 lines: rollouts of ``n_steps`` on N envs (:class:`agents.training.batched_env.BatchedTrainEnv`:
 one kernel call and one batched base-controller call per step), GAE, clipped PPO updates on
 minibatches of the whole rollout.
 
-**Settings** (``agents/hyperparams/bppo.yml``, overridable with ``--hp``): N = ``n_envs``
+**Settings** (``agents/training/hyperparams/bppo.yml``, overridable with ``--hp``): N = ``n_envs``
 (512), ``n_steps`` (32: 16,384 samples per update), ``gamma`` = 0.995, i.e. a horizon
 1 / (1 - gamma) = 200 steps = 10 s at dt = 0.05 s, longer than a packet cycle on Hard
 (4-7 s), so the value of waiting for the next packet is inside the horizon (SB3's default
@@ -52,23 +52,23 @@ probability :func:`mix_probability` (1 falling linearly to 0 at half of ``distil
 the student's mean otherwise, so the student is finally labelled on the states it reaches
 itself. The actor's mean is regressed onto the labels (MSE, logged as ``policy_loss``) and the
 critic onto the returns of the executed actions. ``teacher_link="perfect"`` gives the teacher
-the present target exactly (:func:`agents.floors.perfect_link_observation`: privileged, training
+the present target exactly (:func:`auv_follow_env.perfect_link.perfect_link_observation`: privileged, training
 only); ``"real"`` the same link as the student. The teacher's disturbance observer is told the
 force the env was commanded, not the teacher's own. PPO then continues from the student.
 
 **Divergence.** Every action, loss and (after each update) parameter is checked: at the first
 NaN or infinite one training stops, no ``model.zip`` is written (checkpoints from before stay),
-``config.yaml`` records ``result.failed`` and :func:`agents.train.train` raises
-:class:`agents.train.TrainingFailed` (``auv-follow train``: one line, exit code 1).
+``config.yaml`` records ``result.failed`` and :func:`agents.training.train` raises
+:class:`agents.training.TrainingFailed` (``auv-follow train``: one line, exit code 1).
 
 **Threads.** The env steps on numba's serial kernel (``parallel=False``) and torch uses
 ``torch_threads`` threads (default 1): training is a serial loop of env step, base
 controller, policy forward, so two thread pools would only fight for the same cores.
 
-**Run directory** (the contract of :mod:`agents.train`): ``config.yaml`` (with ``steps_done``
+**Run directory** (the contract of :mod:`agents.training`): ``config.yaml`` (with ``steps_done``
 and ``train_seconds``, refreshed at every checkpoint and evaluation), ``model.zip`` (a torch
 file of tensors and plain values, loaded with ``weights_only=True``: loading runs no pickled
-code), ``vecnormalize.json`` (:mod:`agents.obs_stats`), ``checkpoints/model_<steps>_steps.zip``
+code), ``vecnormalize.json`` (:mod:`agents.training.obs_stats`), ``checkpoints/model_<steps>_steps.zip``
 with ``model_vecnormalize_<steps>_steps.json``, ``eval.csv`` (the learning curve: evaluations
 on ``n_eval_seeds`` fixed training-range seeds), ``progress.csv`` (per update: losses, episode
 statistics, throughput) and ``tb/`` (TensorBoard, if installed).
@@ -85,7 +85,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.obs_stats import ObsStats, read_obs_stats, write_obs_stats
+from agents.training.obs_stats import ObsStats, read_obs_stats, write_obs_stats
 
 __all__ = ["BatchedPPO", "BatchedAgent", "train_bppo", "load_bppo_agent", "MODEL_FORMAT", "POLICY_DEFAULTS"]
 
@@ -103,7 +103,7 @@ EPS = 1e-8
 
 class BatchedPPO:
     """The hyperparameters of the batched PPO (the constructor's signature is what
-    :func:`agents.train.check_hyperparams` validates ``--hp`` keys against)."""
+    :func:`agents.training.check_hyperparams` validates ``--hp`` keys against)."""
 
     def __init__(self, policy: str = "MlpPolicy", n_steps: int = 32, batch_size: int = 4096, n_epochs: int = 5,
                  gamma: float = 0.995, gae_lambda: float = 0.95, learning_rate: float = 3e-4,
@@ -218,7 +218,7 @@ def _arch(pk: dict[str, Any], part: str) -> list[int]:
 
 
 def check_bppo_hyperparams(hp: dict[str, Any], n_envs: int | None = None) -> None:
-    """The checks :func:`agents.train.check_hyperparams` cannot do for bppo (raises ValueError);
+    """The checks :func:`agents.training.check_hyperparams` cannot do for bppo (raises ValueError);
     with ``n_envs``, also the memory of one rollout (n_steps x n_envs samples)."""
     _policy_kwargs(hp.get("policy_kwargs"))
     whole_number("hyperparameter torch_threads", hp.get("torch_threads", 1), 1, 64)
@@ -370,7 +370,7 @@ def _privileged(info: dict[str, Any], n: int) -> np.ndarray:
 
 class BatchedAgent:
     """A bppo agent as a policy over *raw* AUVFollow observations (SB3 ``predict`` protocol,
-    one (W,) or a batch (N, W)): it owns its :class:`~agents.batched_obs.ObservationBuilder`
+    one (W,) or a batch (N, W)): it owns its :class:`~agents.training.batched_obs.ObservationBuilder`
     (base controller, estimator, observer, history), the observation statistics and the
     network. Memory (builder, GRU state) restarts where ``episode_start`` is set and on the
     first call or a change of batch size.
@@ -380,7 +380,7 @@ class BatchedAgent:
 
     def __init__(self, net: Any, stats: ObsStats | None, config: dict[str, Any], task_spec: Any,
                  name: str | None = None) -> None:
-        from agents.batched_obs import ObservationBuilder
+        from agents.training.batched_obs import ObservationBuilder
 
         self.net = net
         self.stats = stats
@@ -463,7 +463,7 @@ def _load_model_file(path: Path) -> dict[str, Any]:
 
 def load_bppo_agent(model_path: Path, config: dict[str, Any], stats: ObsStats | None,
                     name: str | None = None) -> BatchedAgent:
-    """The agent of a bppo run (called by :func:`agents.train.load_agent`)."""
+    """The agent of a bppo run (called by :func:`agents.training.load_agent`)."""
     import gymnasium as gym
 
     data = _load_model_file(model_path)
@@ -525,11 +525,11 @@ def _iqm(x: np.ndarray) -> float:
 
 def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progress: Any, sigint: Any,
                write_yaml: Any) -> tuple[dict[str, Any], bool]:
-    """The training loop of ``algo="bppo"`` (called by :func:`agents.train.train` after it
+    """The training loop of ``algo="bppo"`` (called by :func:`agents.training.train` after it
     validated everything and created the run directory). Returns (result dict, interrupted)."""
     import torch
 
-    from agents.batched_env import BatchedTrainEnv
+    from agents.training.batched_env import BatchedTrainEnv
     from controllers.evaluation import evaluate_batched
 
     hp = {**BatchedPPO().__dict__, **{k: v for k, v in plan.hp.items() if k not in ("n_timesteps", "n_envs",
@@ -565,7 +565,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
         start_steps = int(data["steps_done"])
         r = data["ret_rms"]
         ret_rms.mean, ret_rms.var, ret_rms.count = r["mean"], r["var"], r["count"]
-        from agents.train import _stats_path
+        from agents.training.obs_stats import _stats_path
 
         sp = _stats_path(Path(cfg.resume_from), ".json")
         if norm_obs:  # train checked that the statistics exist and fit before it created the run
@@ -801,7 +801,7 @@ class _Teacher:
         """The teacher's action (N, 3) in [-1, 1] for the env's present raw observations."""
         seen = np.asarray(raw, dtype=np.float64)
         if self.link == "perfect":
-            from agents.floors import perfect_link_observation
+            from auv_follow_env.perfect_link import perfect_link_observation
 
             seen = perfect_link_observation(seen, info["true_target"], info["follower_pose"], self.spec.p_d)
         action, _ = self.controller.predict(np.asarray(seen, dtype=np.float64), episode_start=start)

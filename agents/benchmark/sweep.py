@@ -1,5 +1,5 @@
 """Sweeps on Ray Tune: algorithm x hyperparameters x training seed x tier, each trial calling
-the project's :func:`agents.train.train`.
+the project's :func:`agents.training.train`.
 
 A trial trains in ``chunks`` pieces (``train(..., resume_from=<previous model>)`` continues the
 step count and the VecNormalize statistics); after each piece it evaluates the agent on the
@@ -80,8 +80,8 @@ class SweepConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
-        from agents.benchmark import resolve_tier
-        from agents.train import ALGOS, MODES
+        from agents.benchmark.protocol import resolve_tier
+        from agents.training.config import ALGOS, MODES
 
         name = self.name
         if not isinstance(name, str) or not name.strip() or name in (".", "..") or any(
@@ -151,7 +151,7 @@ class SweepConfig:
 
 
 def _check_validation_seeds(seeds: list[int], tier: str) -> None:
-    from agents.benchmark import tier_test_seeds
+    from agents.benchmark.protocol import tier_test_seeds
 
     clash = sorted(set(int(s) for s in seeds) & set(tier_test_seeds(tier)))
     if clash:
@@ -174,7 +174,10 @@ def param_space(cfg: SweepConfig) -> dict[str, Any]:
 
 
 def _validation_metrics(run: Path, tier: str, seeds: list[int]) -> dict[str, float]:
-    from agents.benchmark import PolicySpec, evaluate_tier, iqm, scores
+    from agents.benchmark.evaluation import evaluate_tier
+    from agents.benchmark.leaderboard import scores
+    from agents.benchmark.policies import PolicySpec
+    from agents.benchmark.stats import iqm
 
     spec = PolicySpec(label="trial", kind="learned", runs=(str(run),))
     df = evaluate_tier([spec], tier, seeds, progress=False)
@@ -194,14 +197,15 @@ def _claim(marker: Path) -> bool:
 
 
 def run_trial(config: dict[str, Any]) -> None:
-    """Tune's function trainable: train in chunks with :func:`agents.train.train`, evaluate on
+    """Tune's function trainable: train in chunks with :func:`agents.training.train`, evaluate on
     the validation seeds, report with a checkpoint; resumes from Tune's checkpoint."""
     import tempfile
 
     from ray import tune
 
-    from agents.benchmark import resolve_tier
-    from agents.train import ConfigError, TrainConfig, train
+    from agents.benchmark.protocol import resolve_tier
+    from agents.training.config import ConfigError, TrainConfig
+    from agents.training.runner import train
 
     fixed = config["_fixed"]
     tier = config.get("tier", "S4")

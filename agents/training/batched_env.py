@@ -1,6 +1,6 @@
 """The batched training env: the native AUVFollow vector env behind an
-:class:`~agents.batched_obs.ObservationBuilder` (residual or from scratch, raw or estimator
-observation), for :mod:`agents.batched_ppo`.
+:class:`~agents.training.batched_obs.ObservationBuilder` (residual or from scratch, raw or estimator
+observation), for :mod:`agents.training.batched_ppo`.
 
 One ``step`` is one kernel call for the N envs plus one call of the base controller (and
 estimator / observer) on the whole batch: nothing runs per env in Python.
@@ -19,7 +19,7 @@ the env is then reset on the next step like an autoreset. No warm-up steps are s
 
 **Threads.** ``parallel`` is passed to the vector env (default ``False``: the serial kernel;
 training shares the cores with torch, and numba's threaded kernel inside a trainer cost 7.8x
-the CPU of the serial one in issue 22's measurement).
+the CPU of the serial one when we measured it).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import gymnasium as gym
 import numpy as np
 
 import auv_follow_env  # noqa: F401  (registers the ids)
-from agents.batched_obs import ObservationBuilder
+from agents.training.batched_obs import ObservationBuilder
 
 __all__ = ["BatchedTrainEnv"]
 

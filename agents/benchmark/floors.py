@@ -1,4 +1,4 @@
-"""Floors per tier: how much is possible (issue 20, item 1).
+"""Floors per tier: how much is possible.
 
 Two reference scores per v1 tier, per test episode, on the same episodes (same seeds, same
 drawn condition, same target path, current, disturbances, plant and thrusters) as the
@@ -48,9 +48,10 @@ from scipy import special
 import auv_follow_env  # noqa: F401  (registers the ids)
 from auv_follow_env.layout import OBS_INDEX_V1
 from auv_follow_env.metrics import tracking_metrics
+from auv_follow_env.perfect_link import perfect_link_observation
 
 __all__ = ["CONTROL_FLOOR", "INFORMATION_FLOOR", "REFERENCE_KIND", "DEFAULT_FOLLOWER", "ControlFloor",
-           "perfect_link_overrides", "perfect_link_observation", "perfect_link_episodes", "control_floor",
+           "perfect_link_episodes", "control_floor",
            "record_episodes", "extract_packets", "mean_norm_2d", "delayed_kalman", "information_floor",
            "floor_episodes", "add_gap_closed"]
 
@@ -86,7 +87,7 @@ def _check_tier(tier: object) -> str:
 
 
 def _check_seeds(seeds: Iterable[int] | None, tier: str) -> list[int]:
-    from agents.benchmark import check_seed_list
+    from agents.benchmark.protocol import check_seed_list
     from auv_follow_env.tiers import TIERS
 
     if seeds is None:
@@ -101,58 +102,8 @@ def _check_seeds(seeds: Iterable[int] | None, tier: str) -> list[int]:
 
 # --- control floor -----------------------------------------------------------------------
 
-def perfect_link_overrides(dt: float = 0.05) -> dict[str, object]:
-    """The v1 overrides of a perfect link: a fix every control step ``dt``, zero latency, no
-    loss, no fix noise. :func:`perfect_link_observation` gives a controller what an env made
-    with these overrides would show it (equal when the link draws no random numbers; tested)."""
-    return {"update_period_s": float(dt), "period_jitter_s": 0.0, "latency_model": "constant", "latency_s": 0.0,
-            "latency_spread_s": 0.0, "loss_prob": 0.0, "burst_p_good_bad": 0.0, "fix_sigma_m": 0.0,
-            "fix_sigma_per_m": 0.0, "heading_sigma_rad": 0.0, "velocity_sigma_mps": 0.0,
-            "yaw_rate_sigma_radps": 0.0}
 
 
-def perfect_link_observation(obs: np.ndarray, true_target: np.ndarray, follower_pose: np.ndarray,
-                             p_d: Sequence[float]) -> np.ndarray:
-    """v1 observations (N, 20) with the target fields replaced by the present, exact target.
-
-    Args:
-        obs: the env's observations (N, 20) (fields 0-4 and 14-15 are kept: the follower's own
-            velocity, heading and the measured current).
-        true_target: (N, 6) present target x, y, psi, u, v, r (``info["true_target"]``).
-        follower_pose: (N, 3) follower x, y, psi (``info["follower_pose"]``).
-        p_d: reference offset in the target frame [m].
-
-    Returns:
-        float32 (N, 20): fields 5-13 as eq. (21) with the present target, ``packet_age`` =
-        ``since_arrival`` = 0, ``new_packet`` = ``has_packet`` = 1.
-    """
-    o = np.asarray(obs)
-    if o.ndim != 2 or o.shape[1] != len(_I):
-        raise ValueError(f"obs has shape {o.shape}: must be (N, {len(_I)}) v1 observations")
-    tt = np.asarray(true_target, dtype=np.float64)
-    fp = np.asarray(follower_pose, dtype=np.float64)
-    out = o.astype(np.float64)
-    x, y, ps = fp[:, 0], fp[:, 1], fp[:, 2]
-    xt, yt, pt = tt[:, 0], tt[:, 1], tt[:, 2]
-    c, s = np.cos(ps), np.sin(ps)
-    ct, st = np.cos(pt), np.sin(pt)
-    pdx, pdy = float(p_d[0]), float(p_d[1])
-    ex, ey = xt - x, yt - y
-    rx, ry = xt + ct * pdx - st * pdy - x, yt + st * pdx + ct * pdy - y
-    out[:, _I["target_dx"]] = c * ex + s * ey
-    out[:, _I["target_dy"]] = -s * ex + c * ey
-    out[:, _I["target_cos_dpsi"]] = np.cos(pt - ps)
-    out[:, _I["target_sin_dpsi"]] = np.sin(pt - ps)
-    out[:, _I["target_u"]] = tt[:, 3]
-    out[:, _I["target_v"]] = tt[:, 4]
-    out[:, _I["target_r"]] = tt[:, 5]
-    out[:, _I["ref_dx"]] = c * rx + s * ry
-    out[:, _I["ref_dy"]] = -s * rx + c * ry
-    out[:, _I["packet_age"]] = 0.0
-    out[:, _I["since_arrival"]] = 0.0
-    out[:, _I["new_packet"]] = 1.0
-    out[:, _I["has_packet"]] = 1.0
-    return out.astype(np.float32)
 
 
 def _rollout(policies: Sequence[Any], names: Sequence[str], env_id: str, seeds: Sequence[int], *,
@@ -274,7 +225,7 @@ def control_floor(tier: str, seeds: Iterable[int] | None = None, controllers: Se
     """The control floor of a tier: the best classical controller (lowest IQM of the
     steady-state true-reference error, a terminated episode scoring the loss threshold) on the
     tier's episodes with a perfect link (:func:`perfect_link_episodes`)."""
-    from agents.benchmark import iqm
+    from agents.benchmark.stats import iqm
 
     eps = perfect_link_episodes(tier, seeds, controllers, progress=progress)
     score = eps["true_steady_mean"].where(~eps["terminated"], _max_distance())
@@ -654,8 +605,8 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
     and :data:`INFORMATION_FLOOR` with ``run`` = ``"kalman"``), with the drawn condition
     (``cond_*``) and the loss threshold like :func:`agents.benchmark.evaluate_tier`'s rows.
     The information floor's ``true_*_mean`` are the expected errors; its other metrics are NaN."""
-    from agents.benchmark import _condition_columns
-    from agents.benchmark import _max_distance as bench_max_distance
+    from agents.benchmark.protocol import _condition_columns
+    from agents.benchmark.protocol import _max_distance as bench_max_distance
 
     tier = _check_tier(tier)
     seeds = _check_seeds(seeds, tier)

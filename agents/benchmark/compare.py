@@ -15,7 +15,8 @@ import gymnasium as gym
 import numpy as np
 import pandas as pd
 
-from agents.train import Agent, check_env_id, load_agent
+from agents.training.config import check_env_id
+from agents.training.loading import Agent, load_agent
 
 __all__ = ["compare", "summarize", "plot_summary", "plot_learning_curves", "SUMMARY_METRICS"]
 
@@ -48,7 +49,7 @@ def compare(agents: Sequence[Agent | str | Path] = (), env_id: str = "AUVFollow-
     Raises:
         ValueError: unknown env id or controller name, a broken run directory, or an ``out_dir``
             that is a file; all checked before any episode runs.
-        FileNotFoundError: an agent path without a model (see :func:`agents.train.load_agent`).
+        FileNotFoundError: an agent path without a model (see :func:`agents.training.load_agent`).
     """
     from controllers import ALL_CONTROLLERS, make_controller
     from controllers.evaluation import evaluate
@@ -58,7 +59,7 @@ def compare(agents: Sequence[Agent | str | Path] = (), env_id: str = "AUVFollow-
     for n in names:
         if n not in ALL_CONTROLLERS:
             raise ValueError(f"controller={n!r} is unknown: valid controllers are {list(ALL_CONTROLLERS)}")
-    from agents.benchmark import check_seed_list
+    from agents.benchmark.protocol import check_seed_list
 
     seeds = check_seed_list(seeds)  # distinct: a repeated seed would count an episode twice in the means
     loaded = [a if isinstance(a, Agent) else load_agent(a) for a in agents]  # every path checked before any work
@@ -95,7 +96,7 @@ def _write_outputs(out: Path, name: str, per_episode: pd.DataFrame, summary: pd.
     import shutil
     import tempfile
 
-    from agents.benchmark import OutputWriteError, replace_set
+    from agents.benchmark.outputs import OutputWriteError, replace_set
 
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,111 @@
+""":func:`benchmark`: policies x tiers on the published test seeds, written as one set of files."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from tqdm.auto import tqdm
+
+import auv_follow_env  # noqa: F401  (registers the ids)
+from agents.benchmark.evaluation import evaluate_tier
+from agents.benchmark.leaderboard import leaderboard
+from agents.benchmark.outputs import BenchmarkResult, provenance, write_outputs
+from agents.benchmark.policies import PolicySpec, _controllers, parse_policy, residual_bases
+from agents.benchmark.protocol import (
+    CLASSICAL,
+    LEADERBOARD_METRICS,
+    V1_TIERS,
+    available_tiers,
+    check_labels,
+    check_seed_list,
+    resolve_tier,
+    tier_test_seeds,
+)
+from agents.benchmark.stats import DEFAULT_BOOTSTRAP_SEED, DEFAULT_RESAMPLES, MAX_RESAMPLES
+from agents.benchmark.traces import replay_traces
+
+
+def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: Iterable[str] = ("S4",), *,
+              seeds: Mapping[str, Sequence[int]] | Sequence[int] | None = None, out_dir: str | Path | None = None,
+              n_resamples: int = DEFAULT_RESAMPLES, bootstrap_seed: int = DEFAULT_BOOTSTRAP_SEED,
+              batched: bool = True, progress: bool = True, command: str | None = None,
+              cache_dir: str | Path | None = None, floors: bool = False) -> BenchmarkResult:
+    """Score ``policies`` on ``tiers`` and build the leaderboard.
+
+    Args:
+        policies: controller names, run directories, directories of runs, ``label=run,run``
+            or ``"classical"`` (every registered scripted controller; the default).
+        tiers: tier names or ids (``"S4"``, ``"Hard"``, ``"AUVFollow-Hard-v1"``).
+        seeds: override the published test seeds (one list for all tiers, or per tier); for
+            quick looks only - the leaderboard protocol is the published seeds.
+        out_dir: if given, write ``episodes.parquet``, ``leaderboard.csv``, ``leaderboard.md``,
+            ``leaderboard.png``, ``traces.parquet`` (one replay episode per tier and policy, for
+            the report) and ``benchmark.json`` there (each records the provenance; written to
+            a temporary folder first, see :func:`write_outputs`).
+        n_resamples, bootstrap_seed: bootstrap settings (fixed seed: reruns agree).
+        batched: evaluate through the native vector env.
+        command: the command line to record (the CLI fills it in).
+        cache_dir: reuse the episodes of runs evaluated before (see :func:`evaluate_tier`).
+        floors: add each v1 tier's control and information floors as reference rows
+            (``kind="reference"``, :func:`agents.benchmark.floors.floor_episodes`) and the leaderboard's
+            ``gap_closed`` column.
+
+    Raises:
+        ValueError: unknown tier or policy, a reserved label, repeated seeds or seeds outside
+            [0, 2**63 - 1], ``n_resamples`` outside [1, :data:`MAX_RESAMPLES`]; all before any
+            episode runs.
+        OutputWriteError: the files could not be written into ``out_dir`` (its previous files
+            are kept).
+    """
+    items: list[Any] = []
+    for p in (list(policies) if policies is not None else [CLASSICAL]):
+        items.extend(_controllers() if p == CLASSICAL else [p])
+    specs = [parse_policy(p) for p in items]
+    if not specs:
+        raise ValueError("policies is empty: give at least one controller name or run directory")
+    labels = [s.label for s in specs]
+    dup = sorted({x for x in labels if labels.count(x) > 1})
+    if dup:
+        raise ValueError(f"policies has duplicate labels {dup}: give each method once (use label=run,run)")
+    check_labels(labels)
+    if isinstance(n_resamples, bool) or not isinstance(n_resamples, (int, np.integer)) or \
+            not 1 <= n_resamples <= MAX_RESAMPLES:
+        raise ValueError(f"n_resamples={n_resamples!r} is invalid: must be an integer in [1, {MAX_RESAMPLES}]")
+    if isinstance(bootstrap_seed, bool) or not isinstance(bootstrap_seed, (int, np.integer)) or bootstrap_seed < 0:
+        raise ValueError(f"bootstrap_seed={bootstrap_seed!r} is invalid: must be an integer >= 0")
+    tiers = [resolve_tier(t)[0] for t in ([tiers] if isinstance(tiers, str) else tiers)]
+    if not tiers:
+        raise ValueError(f"tiers is empty: give at least one of {available_tiers()}")
+    seed_map: dict[str, list[int]] = {}
+    for t in tiers:
+        if seeds is None:
+            seed_map[t] = tier_test_seeds(t)
+        elif isinstance(seeds, Mapping):
+            seed_map[t] = check_seed_list(seeds[t], f"seeds[{t!r}]") if t in seeds else tier_test_seeds(t)
+        else:
+            seed_map[t] = check_seed_list(seeds)
+    frames = [evaluate_tier(specs, t, seed_map[t], batched=batched, progress=progress, cache_dir=cache_dir)
+              for t in tqdm(tiers, desc="tiers", disable=not progress)]
+    if floors:  # reference rows, not competitors (agents/benchmark/floors.py)
+        from agents.benchmark.floors import floor_episodes
+
+        frames += [floor_episodes(t, seed_map[t], progress=progress) for t in tiers if t in V1_TIERS]
+    episodes = pd.concat(frames, ignore_index=True)
+    board = leaderboard(episodes, n_resamples=n_resamples, seed=bootstrap_seed, progress=progress,
+                        bases=residual_bases(specs))
+    config = {"command": command, "tiers": {t: resolve_tier(t)[1] for t in tiers}, "seeds": seed_map,
+              "policies": [dataclasses.asdict(s) for s in specs], "metrics": list(LEADERBOARD_METRICS),
+              "n_resamples": n_resamples, "bootstrap_seed": bootstrap_seed, "confidence": 0.95,
+              "batched": batched, "published_seeds": seeds is None, "floors": floors,
+              "cache_dir": None if cache_dir is None else str(cache_dir)}
+    prov = provenance(config)
+    result = BenchmarkResult(episodes, board, prov)
+    if out_dir is not None:
+        traces = replay_traces(specs, seed_map, progress=progress)
+        result.files = write_outputs(Path(out_dir), episodes, board, prov, traces)
+    return result

@@ -1,0 +1,168 @@
+"""What the batched trainer promises a learner: normalisers that forget (closed forms), the
+evaluated policy equal to the training-time actor, a progress count equal to the steps
+collected, learning-curve seeds held out from training, an episode-error log that is filled,
+and the fast path as the command line's default."""
+
+from __future__ import annotations
+
+import csv
+import io
+
+import numpy as np
+import pytest
+import yaml
+
+EASY = "AUVFollow-Easy-v1"
+
+
+def _tiny_bppo(tmp_path, *extra: str, name: str = "r", timesteps: int = 128) -> None:
+    from agents.cli import main
+
+    assert main(["train", "--algo", "bppo", "--env", EASY, "--mode", "scratch", "--n-envs", "8",
+                 "--hp", "n_steps=8", "--hp", "batch_size=32", "--timesteps", str(timesteps),
+                 "--checkpoint-freq", "0", "--eval-freq", "0", "--no-final-eval", "--no-progress",
+                 "--no-tensorboard", "--out", str(tmp_path), "--run-name", name, *extra]) == 0
+
+
+# --- normalisers -------------------------------------------------------------------------------
+
+def test_windowed_running_mean_forgets_geometrically():
+    """With the count capped at W, a batch of B samples weighs B / (W + B): after a long run of
+    zeros, k batches of ones leave the mean at 1 - (W / (W + B))^k (worked out by hand)."""
+    from agents.training.batched_ppo import _RunningMeanStd
+
+    W, B, k = 100, 10, 7
+    rms = _RunningMeanStd((), window=W)
+    for _ in range(50):
+        rms.update(np.zeros(B))
+    assert rms.count == W
+    for _ in range(k):
+        rms.update(np.ones(B))
+    assert rms.mean == pytest.approx(1.0 - (W / (W + B)) ** k, abs=1e-12)
+
+
+def test_unwindowed_running_mean_never_forgets():
+    """window=0 keeps every sample: 500 zeros then 70 ones give the plain mean 70 / 570."""
+    from agents.training.batched_ppo import _RunningMeanStd
+
+    rms = _RunningMeanStd((), window=0)
+    for _ in range(50):
+        rms.update(np.zeros(10))
+    for _ in range(7):
+        rms.update(np.ones(10))
+    assert rms.mean == pytest.approx(70 / (570 + 1e-4), rel=1e-12)
+
+
+def test_both_normalisers_forget_by_default_and_the_run_records_it(tmp_path):
+    from agents.training.batched_ppo import BatchedPPO
+    from agents.training.config import load_hyperparams
+
+    assert BatchedPPO().obs_norm_window == BatchedPPO().reward_norm_window == 1_000_000
+    hp = load_hyperparams("bppo", EASY, mode="scratch")
+    assert hp["obs_norm_window"] == hp["reward_norm_window"] == 1_000_000
+    _tiny_bppo(tmp_path, "--hp", "reward_norm_window=5000")
+    run = tmp_path / "r"
+    cfg = yaml.safe_load((run / "config.yaml").read_text())
+    assert cfg["training"]["obs_norm_window"] == 1_000_000 and cfg["training"]["reward_norm_window"] == 5000
+    assert cfg["training"]["lr_schedule"] == "linear"
+    stats = yaml.safe_load((run / "vecnormalize.json").read_text())
+    assert stats["window"] == 1_000_000
+
+
+# --- the evaluated policy is the trained one ---------------------------------------------------
+
+def test_predict_equals_the_training_time_actor_with_linear_skip(tmp_path):
+    """A loaded agent's deterministic action is the training-time mean (actor plus the linear
+    skip term), clipped to the env's action box, on the same observations."""
+    import gymnasium as gym
+    import torch
+
+    from agents.training.loading import load_agent
+
+    _tiny_bppo(tmp_path, "--hp", "policy_kwargs=dict(linear_skip=True)")
+    agent = load_agent(tmp_path / "r")
+    net = agent.net
+    with torch.no_grad():  # make the skip term matter (it starts at zero)
+        net.skip.weight.copy_(torch.linspace(-0.5, 0.5, net.skip.weight.numel()).reshape(net.skip.weight.shape))
+    from agents.training.batched_obs import ObservationBuilder
+
+    ref = ObservationBuilder(agent.task_spec, **agent.builder_kwargs)  # the same features, built beside it
+    env = gym.make_vec(EASY, num_envs=3, vectorization_mode="vector_env")
+    obs, _ = env.reset(seed=[11, 12, 13])
+    start = np.ones(3, dtype=bool)
+    for _ in range(5):
+        action, _ = agent.predict(obs, episode_start=start, deterministic=True)
+        feats = agent.normalize(ref.observe(obs, start))
+        with torch.no_grad():
+            x, _ = net.trunk(torch.as_tensor(feats, dtype=torch.float32), None, torch.as_tensor(start))
+            mean, _ = net.heads(x, torch.zeros(3, net.priv) if net.priv else None)
+            without_skip = net.actor(x)
+        want = ref.act(mean.numpy().astype(np.float64))
+        np.testing.assert_allclose(action, want, rtol=0, atol=1e-6)
+        assert np.abs(action - ref.act(without_skip.numpy().astype(np.float64))).max() > 1e-3  # the skip matters
+        obs, *_ = env.step(action)
+        start = np.zeros(3, dtype=bool)
+    env.close()
+
+
+# --- progress, seeds, logs ---------------------------------------------------------------------
+
+def test_progress_lines_count_the_steps_collected():
+    """A rollout of 16,384 steps in a 50,000-step budget prints one line with what was collected
+    (32 %), not three lines that all say 16,384."""
+    from agents.training.sb3 import _Progress
+
+    out = io.StringIO()
+    p = _Progress(50_000, 0, True, stream=out)
+    for s in (16_384, 32_768, 49_152, 65_536):
+        p.update(s)
+    lines = out.getvalue().splitlines()
+    assert lines == ["training: 33% (16,384/50,000 steps)", "training: 66% (32,768/50,000 steps)",
+                     "training: 98% (49,152/50,000 steps)", "training: 100% (65,536/50,000 steps)"]
+
+
+def test_bppo_budget_is_whole_rollouts_and_steps_done_matches(tmp_path):
+    """130 steps with 8 envs x 8 steps per rollout: three rollouts (192 steps) are collected and
+    recorded as both the budget and steps_done."""
+    _tiny_bppo(tmp_path, timesteps=130)
+    cfg = yaml.safe_load((tmp_path / "r" / "config.yaml").read_text())
+    assert cfg["steps_done"] == 192 == cfg["run"]["total_timesteps"]
+    assert cfg["train_seconds"] > 0
+
+
+def test_learning_curve_seeds_are_held_out_from_training_envs(tmp_path):
+    from agents.training.config import ConfigError, TrainConfig
+    from agents.training.runner import train
+
+    default = TrainConfig(algo="bppo", env_id=EASY, mode="scratch")
+    assert default.eval_seed >= 512 + default.seed  # the defaults are disjoint
+    cfg = TrainConfig(algo="bppo", env_id=EASY, mode="scratch", n_envs=16, seed=0, eval_seed=10,
+                      total_timesteps=128, out_dir=str(tmp_path), progress_bar=False)
+    with pytest.raises(ConfigError, match=r"eval_seed.*10.*training env seeds 0-15") as e:
+        train(cfg)
+    assert e.value.field == "eval_seed" and not list(tmp_path.iterdir())
+
+
+def test_episode_error_log_reads_the_env_metric():
+    """The progress log's episode error is the env's own steady-state mean for episodes that
+    ended (the key the vector env reports), never NaN when there is one."""
+    from agents.training.batched_ppo import _episode_errors
+    from auv_follow_env.metrics import METRIC_KEYS
+
+    met = {k: np.array([0.25, 0.5]) for k in METRIC_KEYS}
+    assert _episode_errors(met) == [0.25, 0.5]
+    assert _episode_errors({}) == []
+
+
+def test_episode_errors_are_logged_from_a_real_run(tmp_path):
+    """Short episodes (2 s) end during a tiny run: progress.csv's error column is finite."""
+    _tiny_bppo(tmp_path, "--env-kwarg", "episode_s=2.0", "--hp", "random_phase=False", timesteps=512)
+    with open(tmp_path / "r" / "progress.csv") as f:
+        vals = [float(r["ep_true_steady_mean_m"]) for r in csv.DictReader(f)]
+    assert any(np.isfinite(v) and v > 0 for v in vals)
+
+
+def test_train_command_defaults_to_the_batched_trainer():
+    from agents.cli import build_parser
+
+    assert build_parser().parse_args(["train"]).algo == "bppo"
