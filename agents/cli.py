@@ -155,7 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Train a PPO/SAC/TD3 agent on AUVFollow, from scratch or as a residual on a "
                                    "controller; everything is checked before the run directory is created.",
                        epilog=_TRUST)
-    t.add_argument("--algo", choices=ALGOS, default="ppo",
+    t.add_argument("--algo", choices=ALGOS, default="bppo",
                    help="algorithm (bppo: the batched PPO of agents/training/batched_ppo.py on the native vector env)")
     t.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default="AUVFollow-S4-v0", help="env id")
     t.add_argument("--env-kwarg", dest="env_kwargs", type=_key_value, action="append", default=[],
@@ -193,7 +193,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="env steps between evaluations (0: none; None: 50000, bppo 1000000)")
     t.add_argument("--eval-episodes", type=_positive_int, default=3,
                    help="episodes per evaluation and of the final score")
-    t.add_argument("--eval-seed", type=_nonneg_int, default=500, help="seed of the evaluation env")
+    t.add_argument("--eval-seed", type=_nonneg_int, default=TrainConfig.eval_seed,
+                   help="first seed of the learning-curve episodes (held out from the training envs' seeds)")
     t.add_argument("--resume", dest="resume_from", default=None,
                    help="checkpoint/model .zip to continue (trusted files only: its vecnormalize .pkl is unpickled)")
     t.add_argument("--hyperparams", dest="hyperparams_file", default=None,

@@ -168,10 +168,10 @@ def test_cli_end_to_end(tmp_path, capsys):
     assert (run / "model.zip").is_file() and (run / "eval" / "evaluations.npz").is_file()
     conf = yaml.safe_load((run / "config.yaml").read_text())
     assert conf["run"]["env_kwargs"] == {"disturbance": "L1"}
-    # the final score: eval_episodes=1 episode from eval_seed 500, printed and recorded
-    assert conf["result"]["interrupted"] is False and conf["result"]["final_score"]["seeds"] == [500]
+    # the final score: eval_episodes=1 episode from eval_seed (990,000 by default), printed and recorded
+    assert conf["result"]["interrupted"] is False and conf["result"]["final_score"]["seeds"] == [990000]
     out = capsys.readouterr().out
-    assert "final score on AUVFollow-S4-v0, seeds 500-500" in out
+    assert "final score on AUVFollow-S4-v0, seeds 990000-990000" in out
     assert f"{conf['result']['final_score']['true_steady_mean_m']:.4f} m" in out
     csv = tmp_path / "eval.csv"
     main(["evaluate", str(run), "--seeds", "1000", "--out", str(csv), "--no-progress"])

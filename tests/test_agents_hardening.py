@@ -173,7 +173,8 @@ def _fake_run(root: Path, **run) -> Path:
 ])
 def test_train_refuses_before_creating_anything(tmp_path, capsys, extra, flag, needle):
     out = tmp_path / "runs"
-    argv = ["train", "--timesteps", "256", "--out", str(out), "--no-progress", "--no-tensorboard", *extra]
+    argv = ["train", "--algo", "ppo", "--timesteps", "256", "--out", str(out), "--no-progress", "--no-tensorboard",
+            *extra]
     with pytest.raises(SystemExit) as exc:
         main(argv)
     assert exc.value.code == 2
@@ -184,7 +185,7 @@ def test_train_refuses_before_creating_anything(tmp_path, capsys, extra, flag, n
 
 def test_train_errors_are_one_line(tmp_path, capsys):
     with pytest.raises(SystemExit):
-        main(["train", "--hp", "n_steps=0", "--out", str(tmp_path / "runs")])
+        main(["train", "--algo", "ppo", "--hp", "n_steps=0", "--out", str(tmp_path / "runs")])
     err = capsys.readouterr().err.strip()
     assert err.splitlines() == [err] and err.startswith("auv-follow train: error: argument --hp:")
 
@@ -202,7 +203,8 @@ def test_resume_mismatch_refused_before_creating_anything(tmp_path, capsys, ckpt
         ckpt = _fake_run(tmp_path / "old", **ckpt_run)
     out = tmp_path / "runs"
     with pytest.raises(SystemExit) as exc:
-        main(["train", "--resume", str(ckpt), "--timesteps", "4096", "--out", str(out), "--hp", "normalize=false",
+        main(["train", "--algo", "ppo", "--resume", str(ckpt), "--timesteps", "4096", "--out", str(out),
+              "--hp", "normalize=false",
               *extra])
     assert exc.value.code == 2
     err = capsys.readouterr().err
@@ -215,7 +217,7 @@ def test_resume_with_garbage_vecnormalize_pickle_refused(tmp_path, capsys):
     (ckpt.parent / "model_vecnormalize_512_steps.pkl").write_bytes(b"garbage")
     out = tmp_path / "runs"
     with pytest.raises(SystemExit):
-        main(["train", "--resume", str(ckpt), "--timesteps", "4096", "--out", str(out)])
+        main(["train", "--algo", "ppo", "--resume", str(ckpt), "--timesteps", "4096", "--out", str(out)])
     err = capsys.readouterr().err
     assert "argument --resume" in err and "model_vecnormalize_512_steps.pkl is not a VecNormalize pickle" in err
     assert not out.exists()
@@ -307,7 +309,7 @@ def test_compare_checks_paths_before_evaluating(tmp_path, capsys, monkeypatch):
 
 
 def test_help_shows_defaults(capsys):
-    for cmd, needles in (("train", ["(default: ppo)", "(default: 500)", "trusted like code"]),
+    for cmd, needles in (("train", ["(default: bppo)", "(default: 990000)", "trusted like code"]),
                          ("evaluate", ["(default: None)", "trusted like code"]),
                          ("compare", ["(default: results/tmp/compare)"])):
         with pytest.raises(SystemExit) as exc:
@@ -320,18 +322,17 @@ def test_help_shows_defaults(capsys):
 
 # --- progress output -------------------------------------------------------------------------------
 
-def test_progress_lines_never_overshoot_and_have_no_escape_codes():
+def test_progress_lines_count_what_was_collected_and_have_no_escape_codes():
     stream = io.StringIO()  # not a terminal
     p = _Progress(total=10_000, start=0, enabled=True, stream=stream)
     for steps in (4096, 8192, 12288):  # PPO: whole rollouts of 4096 overshoot the asked 10,000
         p.update(steps)
     p.close()
-    lines = stream.getvalue().splitlines()
-    # 4096 passes 10-40 %, 8192 passes 50-80 %, 12288 (shown as 10,000) passes 90 and 100 %
-    assert [ln.split(":")[1].split("%")[0].strip() for ln in lines] == [str(10 * k) for k in range(1, 11)]
-    assert lines[3] == "training: 40% (4,096/10,000 steps)"
-    assert lines[-1] == "training: 100% (10,000/10,000 steps)"
-    assert "12,288" not in stream.getvalue() and "\r" not in stream.getvalue() and "\x1b" not in stream.getvalue()
+    # one line per update that passes a tenth, with the steps collected; the percentage stops at 100
+    assert stream.getvalue().splitlines() == ["training: 40% (4,096/10,000 steps)",
+                                              "training: 81% (8,192/10,000 steps)",
+                                              "training: 100% (12,288/10,000 steps)"]
+    assert "\r" not in stream.getvalue() and "\x1b" not in stream.getvalue()
 
 
 # --- Ctrl-C -----------------------------------------------------------------------------------------

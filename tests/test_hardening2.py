@@ -204,7 +204,7 @@ def test_policy_kwargs_escape_attempts_are_refused(text, tmp_path, capsys):
         parse_zoo_value(text)
     # the CLI: --hp refuses it in one line naming --hp, before anything is created
     with pytest.raises(SystemExit) as e:
-        main(["train", "--mode", "scratch", "--timesteps", "64", "--hp", f"policy_kwargs={text}",
+        main(["train", "--algo", "ppo", "--mode", "scratch", "--timesteps", "64", "--hp", f"policy_kwargs={text}",
               "--out", str(tmp_path), "--run-name", "r", "--no-progress"])
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -564,7 +564,7 @@ def test_compare_of_a_v1_agent_uses_its_env_and_its_test_seeds(run_copy, tmp_pat
 
 def test_training_on_the_ood_tier_warns(tmp_path, capsys):
     with pytest.raises(SystemExit):
-        main(["train", "--env", "AUVFollow-Extreme-v1", "--mode", "scratch", "--run-name", "a/b",
+        main(["train", "--algo", "ppo", "--env", "AUVFollow-Extreme-v1", "--mode", "scratch", "--run-name", "a/b",
               "--out", str(tmp_path)])
     assert "out-of-distribution testing only" in capsys.readouterr().err
 

@@ -69,5 +69,6 @@ def test_cli_trains_on_the_native_vector_env(tmp_path, capsys):
           "--no-progress", "--no-tensorboard"])
     assert (tmp_path / "nat" / "model.zip").is_file()
     with pytest.raises(SystemExit):
-        main(["train", "--mode", "residual", "--vec", "native", "--timesteps", "64", "--out", str(tmp_path)])
+        main(["train", "--algo", "ppo", "--mode", "residual", "--vec", "native", "--timesteps", "64",
+              "--out", str(tmp_path)])
     assert "vec='native' trains from scratch only" in capsys.readouterr().err

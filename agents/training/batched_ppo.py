@@ -109,9 +109,9 @@ class BatchedPPO:
                  gamma: float = 0.995, gae_lambda: float = 0.95, learning_rate: float = 3e-4,
                  clip_range: float = 0.2, ent_coef: float = 0.0, vf_coef: float = 0.5, max_grad_norm: float = 0.5,
                  target_kl: float | None = None, policy_kwargs: dict | None = None, torch_threads: int = 1,
-                 random_phase: bool = True, n_eval_seeds: int = 32, lr_schedule: str = "constant",
-                 obs_norm_window: int = 0, teacher: str | None = None, teacher_link: str = "perfect",
-                 distill_steps: int = 0) -> None:
+                 random_phase: bool = True, n_eval_seeds: int = 32, lr_schedule: str = "linear",
+                 obs_norm_window: int = 1_000_000, reward_norm_window: int = 1_000_000, teacher: str | None = None,
+                 teacher_link: str = "perfect", distill_steps: int = 0) -> None:
         self.__dict__.update({k: v for k, v in locals().items() if k != "self"})
 
 
@@ -228,6 +228,7 @@ def check_bppo_hyperparams(hp: dict[str, Any], n_envs: int | None = None) -> Non
         raise ValueError(f"hyperparameter lr_schedule={sched!r} is invalid: must be one of {list(LR_SCHEDULES)}")
     try:
         whole_number("hyperparameter obs_norm_window", hp.get("obs_norm_window", 0), 0)
+        whole_number("hyperparameter reward_norm_window", hp.get("reward_norm_window", 0), 0)
     except ValueError as exc:
         raise ValueError(f"{exc} (samples; 0 = never forget)") from None
     if not isinstance(hp.get("random_phase", True), bool):
@@ -324,8 +325,13 @@ def _build_net(obs_dim: int, pk: dict[str, Any]):
             h = self.gru(obs, h)
             return torch.cat([obs, h], dim=-1), h
 
+        def mean(self, x):
+            """The policy's mean action (before the env's clip): the actor, plus the linear skip
+            term when the policy has one. Training and :meth:`BatchedAgent.predict` both call it."""
+            return self.actor(x) if self.skip is None else self.actor(x) + self.skip(x)
+
         def heads(self, x, priv):
-            mean = self.actor(x) if self.skip is None else self.actor(x) + self.skip(x)
+            mean = self.mean(x)
             cin = torch.cat([x, priv], dim=-1) if self.priv else x
             return mean, self.critic(cin).squeeze(-1)
 
@@ -441,7 +447,7 @@ class BatchedAgent:
         with torch.no_grad():
             x, self._h = self.net.trunk(torch.as_tensor(feats, dtype=torch.float32), self._h,
                                         torch.as_tensor(first))
-            mean = self.net.actor(x)
+            mean = self.net.mean(x)
             if not deterministic:
                 mean = mean + torch.exp(self.net.log_std) * torch.randn_like(mean)
         action = self.builder.act(mean.numpy().astype(np.float64))
@@ -499,7 +505,7 @@ def _save_model(path: Path, net: Any, opt: Any, obs_dim: int, pk: dict, steps: i
 
 def _stats(rms: _RunningMeanStd, clip_obs: float = CLIP_OBS, epsilon: float = EPS) -> ObsStats:
     return ObsStats(norm_obs=True, mean=rms.mean.copy(), var=rms.var.copy(), count=float(rms.count),
-                    clip_obs=float(clip_obs), epsilon=float(epsilon))
+                    clip_obs=float(clip_obs), epsilon=float(epsilon), window=int(rms.window))
 
 
 class _Diverged(Exception):
@@ -513,6 +519,12 @@ def _check_finite_parameters(net: Any, steps: int) -> None:
         if not bool(torch.isfinite(p).all()):
             raise _Diverged(f"the network's parameter {name} is not finite (NaN or inf) after the update at {steps:,} "
                             "steps")
+
+
+def _episode_errors(met: dict[str, Any]) -> list[float]:
+    """Steady-state mean tracking errors [m] of the episodes that ended (the vector env's
+    ``episode_metrics`` key ``steady_mean``: the true reference's error, eq. (65))."""
+    return np.asarray(met.get("steady_mean", ()), dtype=float).reshape(-1).tolist()
 
 
 def _iqm(x: np.ndarray) -> float:
@@ -551,7 +563,13 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     net = _build_net(D, pk)
     opt = torch.optim.Adam(net.parameters(), lr=float(hp["learning_rate"]), eps=1e-5)
     lr0 = float(hp["learning_rate"])
-    obs_rms, ret_rms = _RunningMeanStd((D,), window=int(hp["obs_norm_window"])), _RunningMeanStd(())
+    obs_rms = _RunningMeanStd((D,), window=int(hp["obs_norm_window"]))
+    ret_rms = _RunningMeanStd((), window=int(hp["reward_norm_window"]))
+    # what this run applies, whatever the YAML said or left to the defaults
+    resolved["training"] = {"lr_schedule": str(hp["lr_schedule"]), "learning_rate": float(hp["learning_rate"]),
+                            "obs_norm_window": int(hp["obs_norm_window"]),
+                            "reward_norm_window": int(hp["reward_norm_window"]),
+                            "norm_obs": norm_obs, "norm_reward": norm_rew}
     start_steps = 0
     if cfg.resume_from is not None:
         data = _load_model_file(Path(cfg.resume_from))
@@ -706,8 +724,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                     if "episodes" in info:
                         rets, _, met = info["episodes"]
                         ep_returns.extend(rets.tolist())
-                        if "true_steady_mean" in met:
-                            ep_errors.extend(np.asarray(met["true_steady_mean"], dtype=float).tolist())
+                        ep_errors.extend(_episode_errors(met))
                 o = normalize(raw_obs, update=False)
                 x, _ = net.trunk(torch.from_numpy(o), h, torch.from_numpy(first))
                 _, last_v = net.heads(x, torch.from_numpy(priv) if net.priv else None)

@@ -178,13 +178,15 @@ _NUMERIC_BOUNDS: dict[str, tuple[float, bool, float]] = {
     "buffer_size": (1, True, math.inf), "policy_delay": (1, True, math.inf), "n_envs": (1, True, MAX_N_ENVS),
     "learning_starts": (0, True, math.inf), "target_update_interval": (1, True, math.inf),
     "stats_window_size": (1, True, math.inf), "torch_threads": (1, True, 64), "n_eval_seeds": (1, True, 10_000),
-    "obs_norm_window": (0, True, math.inf), "distill_steps": (0, True, math.inf)}
+    "obs_norm_window": (0, True, math.inf),
+    "reward_norm_window": (0, True, math.inf), "distill_steps": (0, True, math.inf)}
 
 
 #: hyperparameters whose value must be a whole number (an int, or a float such as 1.0e+6 that is one; never a bool)
 _INTEGER_KEYS = frozenset({"n_steps", "batch_size", "n_epochs", "buffer_size", "policy_delay", "n_envs",
                            "learning_starts", "target_update_interval", "stats_window_size", "sde_sample_freq",
-                           "gradient_steps", "torch_threads", "n_eval_seeds", "obs_norm_window", "distill_steps"})
+                           "gradient_steps", "torch_threads", "n_eval_seeds", "obs_norm_window", "distill_steps",
+                           "reward_norm_window"})
 
 
 #: allowed values of the VecNormalize settings in ``normalize=dict(...)`` (bools, or (lower, upper] numbers)
@@ -445,7 +447,9 @@ class TrainConfig:
     """The agent's observation: "raw" or "estimator" (the estimator block, agents.training.batched_obs);
     None: "estimator" for bppo on v1 ids, else "raw". SB3 algorithms take "estimator" in residual mode only."""
     eval_episodes: int = 3  #: episodes per evaluation (and of the final score)
-    eval_seed: int = 500  #: seed of the EvalCallback env (distinct from training and test seeds)
+    #: first seed of the learning-curve / EvalCallback episodes: held out from the training envs' seeds
+    #: (``seed`` .. ``seed + n_envs - 1``), the sweep's validation seeds and every test seed
+    eval_seed: int = 990_000
     resume_from: str | None = None  #: checkpoint/model .zip to continue (keeps num_timesteps)
     hyperparams_file: str | None = None  #: YAML file (None: agents/training/hyperparams/<algo>.yml)
     hyperparams: dict[str, Any] = field(default_factory=dict)  #: overrides of the YAML entries

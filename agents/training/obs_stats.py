@@ -46,6 +46,7 @@ class ObsStats:
     count: float  #: samples behind the running statistics
     clip_obs: float  #: bound of the normalised observation (> 0)
     epsilon: float  #: added to the variance (> 0)
+    window: int = 0  #: samples the statistics remember (older ones fade out); 0: every sample, as SB3
 
     def normalize(self, obs: np.ndarray) -> np.ndarray:
         """The normalised observation(s), float32 (unchanged if not ``norm_obs``)."""
@@ -74,7 +75,7 @@ def write_obs_stats(stats: ObsStats | Any, path: str | Path) -> Path:
         stats = stats_from_vecnormalize(stats)
     path = Path(path)
     data = {"format": FORMAT, "norm_obs": stats.norm_obs, "clip_obs": stats.clip_obs, "epsilon": stats.epsilon,
-            "count": stats.count, "mean": stats.mean.tolist(), "var": stats.var.tolist()}
+            "count": stats.count, "window": int(stats.window), "mean": stats.mean.tolist(), "var": stats.var.tolist()}
     tmp = path.with_name(path.name + ".tmp")
     try:
         tmp.write_text(json.dumps(data, indent=1) + "\n")
@@ -126,7 +127,16 @@ def read_obs_stats(path: str | Path) -> ObsStats:
         raise ValueError(f"{path}: var is invalid: must be >= 0")
     return ObsStats(norm_obs=data["norm_obs"], mean=arrays["mean"], var=arrays["var"],
                     count=_number(data, "count", path, positive=False),
-                    clip_obs=_number(data, "clip_obs", path), epsilon=_number(data, "epsilon", path))
+                    clip_obs=_number(data, "clip_obs", path), epsilon=_number(data, "epsilon", path),
+                    window=_window(data, path))
+
+
+def _window(data: dict, path: Path) -> int:
+    """The statistics' window (absent in files written before it was recorded: 0, never forget)."""
+    w = data.get("window", 0)
+    if isinstance(w, bool) or not isinstance(w, int) or w < 0:
+        raise ValueError(f"{path}: window={w!r} is invalid: must be a whole number of samples >= 0")
+    return w
 
 
 #: SB3 VecNormalize defaults (what a run's ``normalize`` section means when it omits a key)

@@ -82,6 +82,17 @@ def _check_resume(cfg: TrainConfig, residual: dict | None) -> None:
 
 
 
+def _check_eval_seeds(cfg: TrainConfig, n_envs: int, n_eval: int) -> None:
+    """The learning-curve episodes must be held out: no evaluation seed may be a training env's
+    seed (env i is seeded ``seed + i``; its later episodes continue its generator)."""
+    train_lo, train_hi = cfg.seed, cfg.seed + n_envs - 1
+    eval_lo, eval_hi = cfg.eval_seed, cfg.eval_seed + n_eval - 1
+    if eval_lo <= train_hi and train_lo <= eval_hi:
+        raise ConfigError("eval_seed", f"eval_seed={cfg.eval_seed} gives evaluation seeds {eval_lo}-{eval_hi}, which "
+                                       f"overlap the training env seeds {train_lo}-{train_hi} (seed + env index): "
+                                       f"choose an eval_seed above {train_hi} or below {train_lo - n_eval + 1}")
+
+
 def _plan(cfg: TrainConfig) -> _Plan:
     cfg.validate()
     cls = _algo_class(cfg.algo)
@@ -106,6 +117,10 @@ def _plan(cfg: TrainConfig) -> _Plan:
         raise ConfigError("total_timesteps", "total_timesteps is not given and the hyperparameters have no "
                                              "n_timesteps")
     total = int(cfg.total_timesteps if cfg.total_timesteps is not None else hp["n_timesteps"])
+    if cfg.algo in BATCHED_ALGOS:  # whole rollouts: the budget is what will be collected (and recorded)
+        per = int(hp.get("n_steps", 32)) * n_envs
+        total = -(-total // per) * per
+    _check_eval_seeds(cfg, n_envs, int(hp.get("n_eval_seeds", 32)) if cfg.algo in BATCHED_ALGOS else 1)
     residual = cfg.residual_kwargs() if cfg.mode == "residual" else None
     algo_kwargs = {k: v for k, v in hp.items() if k not in _ZOO_KEYS}
     # the algorithm's own default gamma (bppo's is 0.995) when the hyperparameters give none
@@ -230,6 +245,10 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
         _record_failure(run, resolved, steps, start_steps, f"a write failed: {_one_line(exc)}")
         raise TrainingFailed(run, steps, f"a write failed: {_one_line(exc)}") from exc
     steps = int(model.num_timesteps)
+    lr = plan.hp.get("learning_rate")
+    resolved["training"] = {"lr_schedule": "constant" if isinstance(lr, (int, float)) or lr is None else repr(lr),
+                            "learning_rate": lr if isinstance(lr, (int, float)) else None}
+    resolved["steps_done"], resolved["train_seconds"] = steps, round(float(elapsed), 2)
     resolved["result"] = {"num_timesteps": steps, "start_timesteps": start_steps,
                           "wall_clock_s": round(elapsed, 2),
                           "steps_per_s": round((steps - start_steps) / max(elapsed, 1e-9), 1),

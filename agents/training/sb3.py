@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from pathlib import Path
@@ -133,16 +134,17 @@ class _Progress:
             self.bar = tqdm(total=total, unit="step", unit_scale=True, desc="training", file=self.stream)
 
     def update(self, num_timesteps: int) -> None:
+        """Show ``num_timesteps`` (steps collected so far, ``start`` included): the bar moves to it;
+        a log gets one line whenever it passes the next tenth, with the count collected."""
         if not self.enabled:
             return
-        done = min(max(num_timesteps - self.start, 0), self.total)
+        done = max(num_timesteps - self.start, 0)  # an algorithm may collect past the budget (whole rollouts)
         if self.bar is not None:
-            self.bar.update(done - self.shown)
-        else:
-            while done >= self.next_line * self.total - 1e-9 and self.next_line <= 1.0 + 1e-9:
-                print(f"training: {round(self.next_line * 100)}% ({done:,}/{self.total:,} steps)", file=self.stream,
-                      flush=True)
-                self.next_line += 0.1
+            self.bar.update(min(done, self.total) - min(self.shown, self.total))
+        elif self.next_line <= 1.0 + 1e-9 and done >= self.next_line * self.total - 1e-9:
+            pct = min(math.floor(100 * done / max(self.total, 1)), 100)
+            print(f"training: {pct}% ({done:,}/{self.total:,} steps)", file=self.stream, flush=True)
+            self.next_line = math.floor(10 * done / max(self.total, 1) + 1e-9) / 10 + 0.1
         self.shown = done
 
     def close(self) -> None:
