@@ -167,3 +167,63 @@ def test_train_command_defaults_to_the_batched_trainer():
     from agents.cli import build_parser
 
     assert build_parser().parse_args(["train"]).algo == "bppo"
+
+
+# --- smoothness options ------------------------------------------------------------------------
+
+def test_action_filter_is_a_first_order_low_pass_the_policy_observes():
+    """alpha = 0.25 and a constant action 1 from an episode's start: the action used is
+    u_k = 1 - 0.75^(k+1) and the observation carries u_{k-1} (0 at the start); a new episode
+    starts from 0 again (worked out by hand)."""
+    import gymnasium as gym
+
+    from agents.training.batched_obs import ObservationBuilder
+
+    env = gym.make(EASY)
+    spec = env.unwrapped.task_spec
+    raw, _ = env.reset(seed=1)
+    env.close()
+    b = ObservationBuilder(spec, observation="raw", action_filter=0.25)
+    plain = ObservationBuilder(spec, observation="raw")
+    assert b.dim == plain.dim + 3 and b.config["action_filter"] == 0.25 and "action_filter" not in plain.config
+    raw2 = np.repeat(raw[None, :], 2, axis=0)
+    start = np.array([True, True])
+    for k in range(4):
+        o = b.observe(raw2, start)
+        np.testing.assert_allclose(o[:, -3:], 1 - 0.75 ** k, rtol=0, atol=1e-7)
+        u = b.act(np.ones((2, 3)))
+        np.testing.assert_allclose(u, 1 - 0.75 ** (k + 1), rtol=0, atol=1e-12)
+        start = np.array([False, False])
+    o = b.observe(raw2, np.array([True, False]))  # env 0 starts a new episode
+    np.testing.assert_allclose(o[0, -3:], 0.0)
+    np.testing.assert_allclose(o[1, -3:], 1 - 0.75 ** 4, atol=1e-7)
+
+
+@pytest.mark.parametrize("value", [0, -0.1, 1.5, float("nan"), True, "x"])
+def test_action_filter_refuses_values_outside_its_range(value):
+    import gymnasium as gym
+
+    from agents.training.batched_obs import ObservationBuilder
+
+    env = gym.make(EASY)
+    spec = env.unwrapped.task_spec
+    env.close()
+    with pytest.raises(ValueError, match=r"action_filter=.* must be a number in \(0, 1\]"):
+        ObservationBuilder(spec, action_filter=value)
+
+
+def test_smoothness_options_train_record_and_load(tmp_path):
+    """Both options are bppo hyperparameters: recorded under training:, the filter also in the
+    observation settings, and the loaded agent acts through the same filter."""
+    from agents.training.loading import load_agent
+
+    _tiny_bppo(tmp_path, "--hp", "action_rate_coef=0.1", "--hp", "action_filter=0.5")
+    run = tmp_path / "r"
+    cfg = yaml.safe_load((run / "config.yaml").read_text())
+    assert cfg["training"]["action_rate_coef"] == 0.1 and cfg["training"]["action_filter"] == 0.5
+    assert cfg["observation"]["action_filter"] == 0.5
+    with open(run / "progress.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert all(float(r["dF_u_mean_N"]) >= 0 for r in rows)
+    agent = load_agent(run)
+    assert agent.builder.action_filter == 0.5

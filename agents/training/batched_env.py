@@ -70,6 +70,7 @@ class BatchedTrainEnv:
         self._done = np.zeros(self.num_envs, dtype=bool)  # ended last step (any reason)
         self._ret = np.zeros(self.num_envs)
         self.raw: np.ndarray | None = None
+        self.last_action: np.ndarray | None = None
         self.info: dict[str, Any] = {}
 
     def reset(self) -> np.ndarray:
@@ -90,6 +91,7 @@ class BatchedTrainEnv:
         (this transition is the autoreset, a dummy) and, on steps where episodes ended naturally,
         ``info["episodes"]`` = (returns, lengths, episode_metrics dict) of those envs."""
         a = self.builder.act(actions)
+        self.last_action = a  #: (N, 3) the env action of this step, in [-1, 1]
         raw, rew, term, trunc, info = self.venv.step(np.ascontiguousarray(a))
         prev_done = self._done.copy()
         pend = self._pending

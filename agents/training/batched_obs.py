@@ -32,6 +32,7 @@ Before the first fix of an episode (``est_valid`` = 0) the estimate fields are 0
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -86,10 +87,20 @@ def check_observation(observation: Any) -> str:
     return observation
 
 
-def observation_dim(obs_width: int, mode: str, observation: str, include_base_action: bool, history_len: int) -> int:
+def observation_dim(obs_width: int, mode: str, observation: str, include_base_action: bool, history_len: int,
+                    action_filter: float = 1.0) -> int:
     """Width of the agent's observation."""
     return (int(obs_width) + (3 if mode == "residual" and include_base_action else 0)
-            + (ESTIMATOR_DIM if observation == "estimator" else 0) + 3 * int(history_len))
+            + (ESTIMATOR_DIM if observation == "estimator" else 0) + 3 * int(history_len)
+            + (3 if float(action_filter) < 1.0 else 0))
+
+
+def check_action_filter(action_filter: Any) -> float:
+    """The low-pass gain of the agent's action: a number in (0, 1] (1: no filter)."""
+    ok = isinstance(action_filter, (int, float, np.integer, np.floating)) and not isinstance(action_filter, bool)
+    if not ok or not math.isfinite(float(action_filter)) or not 0.0 < float(action_filter) <= 1.0:
+        raise ValueError(f"action_filter={action_filter!r} is invalid: must be a number in (0, 1] (1: no filter)")
+    return float(action_filter)
 
 
 #: estimator model -> indices of its velocity states (the state starts x, y, psi for every model)
@@ -148,6 +159,10 @@ class ObservationBuilder:
         observer_feed: what the base's disturbance observer is told: ``"applied"`` (base +
             residual, the force commanded) or ``"base"`` (only the base's own command, as in earlier
             versions: the observer then cancels a residual; kept to evaluate agents trained so).
+        action_filter: low-pass gain alpha in (0, 1] of the agent's action: the action used is
+            ``u_k = u_{k-1} + alpha (a_k - u_{k-1})`` (``u`` = 0 at an episode's start), and
+            ``u_{k-1}`` is appended to the observation (3 fields) so the policy sees its own
+            state. 1 (the default): no filter, nothing appended.
 
     The memory of every part (base controller, estimators, observers, history) restarts
     for the envs where ``start`` is set, and for all on the first call or a change of N.
@@ -155,7 +170,7 @@ class ObservationBuilder:
 
     def __init__(self, spec: Any, *, mode: str = "scratch", controller: str | None = None, scale: float = 0.2,
                  include_base_action: bool = True, observation: str = "raw", history_len: int = 0,
-                 history_stride: int = 10, observer_feed: str = "applied") -> None:
+                 history_stride: int = 10, observer_feed: str = "applied", action_filter: float = 1.0) -> None:
         from agents.training.history import DelayedTargetHistory, _check
 
         _check_mode(mode)
@@ -163,6 +178,8 @@ class ObservationBuilder:
         if observer_feed not in OBSERVER_FEEDS:
             raise ValueError(f"observer_feed={observer_feed!r} is unknown: valid feeds are {list(OBSERVER_FEEDS)}")
         self.observer_feed = observer_feed
+        self.action_filter = check_action_filter(action_filter)
+        self._u: np.ndarray | None = None  #: (N, 3) the filtered action of the last act (action_filter < 1)
         if mode == "residual":
             _check(controller, scale, history_len, history_stride)
         else:
@@ -187,7 +204,8 @@ class ObservationBuilder:
         self.dob = (DisturbanceObserver(spec.nominal, spec.dt, spec.force_limits, DOB_TIME_CONSTANT)
                     if want and self.base_dob is None else None)
         self.history = DelayedTargetHistory(self.history_len, self.history_stride, spec.dt)
-        self.dim = observation_dim(self.obs_width, mode, observation, self.include_base_action, self.history_len)
+        self.dim = observation_dim(self.obs_width, mode, observation, self.include_base_action, self.history_len,
+                                   self.action_filter)
         self._n: int | None = None
         self.base_action: np.ndarray | None = None  #: (N, 3) float32, the base's action at the last observe
         self.base_forces: np.ndarray | None = None  #: (N, 3) float64, the base's command [N, N, N m]
@@ -199,7 +217,8 @@ class ObservationBuilder:
         return {"mode": self.mode, "controller": getattr(self.base, "name", None) if self.base else None,
                 "scale": self.scale, "include_base_action": self.include_base_action,
                 "observation": self.observation, "history_len": self.history_len,
-                "history_stride": self.history_stride, "observer_feed": self.observer_feed}
+                "history_stride": self.history_stride, "observer_feed": self.observer_feed,
+                **({"action_filter": self.action_filter} if self.action_filter < 1.0 else {})}
 
     def reset(self) -> None:
         """Forget everything: the next :meth:`observe` starts every env afresh."""
@@ -247,6 +266,11 @@ class ObservationBuilder:
             parts.append(estimator_features(est, d_hat, since, self.spec, estimator.model).astype(np.float32))
         if self.history_len:
             parts.append(self.history(obs, start))
+        if self.action_filter < 1.0:
+            if self._u is None or self._u.shape[0] != n:
+                self._u = np.zeros((n, 3))
+            self._u[start] = 0.0
+            parts.append(self._u.astype(np.float32))
         return np.concatenate(parts, axis=1) if len(parts) > 1 else parts[0].copy()
 
     def act(self, action: Any) -> np.ndarray:
@@ -256,6 +280,9 @@ class ObservationBuilder:
         if n is None:
             raise ValueError("act() needs an observe() first")
         res = np.clip(np.asarray(action, dtype=np.float64).reshape(n, 3), -1.0, 1.0)
+        if self.action_filter < 1.0:
+            self._u = self._u + self.action_filter * (res - self._u)
+            res = self._u.copy()
         if self.base is not None:
             a = np.clip(self.base_action.astype(np.float64) + self.scale * res, -1.0, 1.0)
             force = np.clip(self.base_forces + self.scale * res * self.limits, -self.limits, self.limits)

@@ -111,7 +111,8 @@ class BatchedPPO:
                  target_kl: float | None = None, policy_kwargs: dict | None = None, torch_threads: int = 1,
                  random_phase: bool = True, n_eval_seeds: int = 32, lr_schedule: str = "linear",
                  obs_norm_window: int = 1_000_000, reward_norm_window: int = 1_000_000, teacher: str | None = None,
-                 teacher_link: str = "perfect", distill_steps: int = 0) -> None:
+                 teacher_link: str = "perfect", distill_steps: int = 0, action_rate_coef: float = 0.0,
+                 action_filter: float = 1.0) -> None:
         self.__dict__.update({k: v for k, v in locals().items() if k != "self"})
 
 
@@ -231,6 +232,13 @@ def check_bppo_hyperparams(hp: dict[str, Any], n_envs: int | None = None) -> Non
         whole_number("hyperparameter reward_norm_window", hp.get("reward_norm_window", 0), 0)
     except ValueError as exc:
         raise ValueError(f"{exc} (samples; 0 = never forget)") from None
+    _real("hyperparameter action_rate_coef", hp.get("action_rate_coef", 0.0), 0.0, math.inf)
+    from agents.training.batched_obs import check_action_filter
+
+    try:
+        check_action_filter(hp.get("action_filter", 1.0))
+    except ValueError as exc:
+        raise ValueError(f"hyperparameter {exc}") from None
     if not isinstance(hp.get("random_phase", True), bool):
         raise ValueError(f"hyperparameter random_phase={hp.get('random_phase')!r} is invalid: must be true or false")
     _check_teacher(hp)
@@ -569,7 +577,9 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     resolved["training"] = {"lr_schedule": str(hp["lr_schedule"]), "learning_rate": float(hp["learning_rate"]),
                             "obs_norm_window": int(hp["obs_norm_window"]),
                             "reward_norm_window": int(hp["reward_norm_window"]),
-                            "norm_obs": norm_obs, "norm_reward": norm_rew}
+                            "norm_obs": norm_obs, "norm_reward": norm_rew,
+                            "action_rate_coef": float(hp["action_rate_coef"]),
+                            "action_filter": float(hp["action_filter"])}
     start_steps = 0
     if cfg.resume_from is not None:
         data = _load_model_file(Path(cfg.resume_from))
@@ -606,7 +616,8 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     eval_fields = ["steps", "train_seconds", "n_seeds", "true_steady_mean_m", "true_steady_iqm_m",
                    "true_full_mean_m", "return_mean", "terminated_frac"]
     prog_fields = ["steps", "train_seconds", "steps_per_s", "ep_return_mean", "ep_true_steady_mean_m", "episodes",
-                   "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "std_mean", "learning_rate"]
+                   "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "std_mean", "learning_rate",
+                   "dF_u_mean_N"]
     if not eval_csv.exists():
         with open(eval_csv, "w", newline="") as f:
             csv.writer(f).writerow(eval_fields)
@@ -648,6 +659,9 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
         resolved["train_seconds"] = round(float(seconds), 2)
         write_yaml(run / "config.yaml", resolved)
 
+    rate_coef = float(hp["action_rate_coef"])
+    prev_exec = np.zeros((n_envs, 3))  # the env action of each env's previous step (in [-1, 1])
+    limits = np.asarray(env.spec.force_limits, dtype=np.float64)
     teacher, distill_steps = _make_teacher(hp, env), int(hp["distill_steps"])
     mix_rng = np.random.default_rng([cfg.seed, 0xD15])
     raw_obs = env.reset()
@@ -666,6 +680,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     diverged: str | None = None
     ep_returns: list[float] = []
     ep_errors: list[float] = []
+    df_sum, df_n = np.zeros(3), 0  # |dF| per step [N, N, N m] over the valid transitions of an update
     if eval_freq and start_steps == 0:
         last_eval = evaluate_now(0, 0.0)
     try:
@@ -709,6 +724,14 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                                                           mix_rng)
                     raw_obs, rew, term, trunc, info = env.step(act)
                     valid = ~info["prev_done"]
+                    # the change of the executed action (none at an episode's first step)
+                    change = np.where(first[:, None], 0.0, env.last_action - prev_exec)
+                    prev_exec = env.last_action.copy()
+                    if valid.any():
+                        df_sum += np.abs(change[valid] * limits).sum(axis=0)
+                        df_n += int(valid.sum())
+                    if rate_coef > 0.0:  # the action-rate term: -c ||a_k - a_{k-1}||^2 (action units)
+                        rew = rew - rate_coef * np.sum(change * change, axis=1)
                     done = term | trunc
                     if norm_rew:
                         ret_acc = ret_acc * rgamma + rew
@@ -754,9 +777,11 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                    "steps_per_s": round((steps - start_steps) / max(elapsed, 1e-9), 1),
                    "ep_return_mean": float(np.mean(ep_returns)) if ep_returns else float("nan"),
                    "ep_true_steady_mean_m": float(np.nanmean(ep_errors)) if ep_errors else float("nan"),
-                   "episodes": len(ep_returns), **stats, "learning_rate": opt.param_groups[0]["lr"]}
+                   "episodes": len(ep_returns), **stats, "learning_rate": opt.param_groups[0]["lr"],
+                   "dF_u_mean_N": float(df_sum[0] / max(df_n, 1))}
             ep_returns.clear()
             ep_errors.clear()
+            df_sum, df_n = np.zeros(3), 0
             with open(prog_csv, "a", newline="") as f:
                 csv.writer(f).writerow([row[k] for k in prog_fields])
             if writer is not None:

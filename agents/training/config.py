@@ -179,7 +179,8 @@ _NUMERIC_BOUNDS: dict[str, tuple[float, bool, float]] = {
     "learning_starts": (0, True, math.inf), "target_update_interval": (1, True, math.inf),
     "stats_window_size": (1, True, math.inf), "torch_threads": (1, True, 64), "n_eval_seeds": (1, True, 10_000),
     "obs_norm_window": (0, True, math.inf),
-    "reward_norm_window": (0, True, math.inf), "distill_steps": (0, True, math.inf)}
+    "reward_norm_window": (0, True, math.inf), "action_rate_coef": (0, True, math.inf),
+    "action_filter": (0, False, 1), "distill_steps": (0, True, math.inf)}
 
 
 #: hyperparameters whose value must be a whole number (an int, or a float such as 1.0e+6 that is one; never a bool)

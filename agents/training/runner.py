@@ -322,6 +322,8 @@ def _train_batched(cfg: TrainConfig, plan: _Plan, return_model: bool):
     from agents.training.batched_ppo import train_bppo
 
     builder = cfg.builder_kwargs()
+    if float(plan.hp.get("action_filter", 1.0)) < 1.0:  # the low-pass action is part of what the agent observes
+        builder["action_filter"] = float(plan.hp["action_filter"])
     n_eval = int(plan.hp.get("n_eval_seeds", 32))
     try:
         check_tier_training_seeds(cfg.env_id, [cfg.seed + i for i in range(plan.n_envs)]
