@@ -135,8 +135,11 @@ def test_a_signal_to_warm_stops_its_jobs(tmp_path, sig, code):
     pids = tmp_path / "pids"
     pids.mkdir()
     env = {**os.environ, "PIDDIR": str(pids), "PYTHONPATH": str(ROOT)}
+    # as from a terminal: a test run started in the background (nohup, `&`) inherits SIGINT ignored,
+    # and a Python started so never turns SIGINT into KeyboardInterrupt
     parent = subprocess.Popen([sys.executable, "-c", _SLEEPERS], cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True)
+                              stderr=subprocess.PIPE, text=True,
+                              preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 60
         while len(os.listdir(pids)) < 2 and time.monotonic() < deadline and parent.poll() is None:
