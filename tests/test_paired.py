@@ -78,3 +78,42 @@ def test_a_residual_is_paired_with_its_own_base(tmp_path):
              PolicySpec("scratch", "learned", runs=(str(tmp_path / "r3"),)),
              PolicySpec("PID", "classical", controller="PID")]
     assert residual_bases(specs) == {"one": "PROPOSED"}
+
+
+def _write_run(path, controller, observation):
+    import yaml
+
+    path.mkdir(parents=True)
+    (path / "config.yaml").write_text(yaml.safe_dump({"run": {"mode": "residual", "controller": controller},
+                                                      "observation": {"observation": observation}}))
+    return str(path)
+
+
+def test_a_residual_carrying_a_filter_is_also_paired_with_the_law_on_that_filter(tmp_path):
+    """A residual on PROPOSED whose observation carries the estimator block is compared with
+    PROPOSED (its base) and with PROPOSED_KF (the same law on that filter); one on raw
+    observations, or on a base with its own filter, only with its base. Per-seed differences
+    by hand: R - PROPOSED = -0.2, -0.2, -0.2 (mean -0.2); R - PROPOSED_KF = -0.05, +0.05, 0.0 (mean 0)."""
+    from agents.benchmark.leaderboard import leaderboard_markdown
+    from agents.benchmark.policies import PolicySpec, filtered_laws, residual_bases, residual_observations
+
+    est = PolicySpec("R", "learned", runs=(_write_run(tmp_path / "a", "PROPOSED", "estimator"),))
+    raw = PolicySpec("Q", "learned", runs=(_write_run(tmp_path / "b", "PROPOSED", "raw"),))
+    own = PolicySpec("K", "learned", runs=(_write_run(tmp_path / "c", "PROPOSED_KF_DOB", "estimator"),))
+    specs = [est, raw, own]
+    assert residual_bases(specs) == {"R": "PROPOSED", "Q": "PROPOSED", "K": "PROPOSED_KF_DOB"}
+    assert residual_observations(specs) == {"R": "estimator", "Q": "raw", "K": "estimator"}
+    assert filtered_laws(specs) == {"R": "PROPOSED_KF"}
+
+    rows = []
+    for s, (r, p, kf) in enumerate([(0.3, 0.5, 0.35), (0.4, 0.6, 0.35), (0.5, 0.7, 0.5)]):
+        for pol, kind, v in (("R", "learned", r), ("PROPOSED", "classical", p), ("PROPOSED_KF", "classical", kf)):
+            rows.append(dict(tier="Medium", policy=pol, kind=kind, run="x" if kind == "learned" else "", seed=s,
+                             terminated=False, true_steady_mean=v, true_full_mean=v))
+    board = leaderboard(pd.DataFrame(rows), n_resamples=200, bases={"R": "PROPOSED"},
+                        observations={"R": "estimator"}, filtered={"R": "PROPOSED_KF"}).set_index("policy")
+    assert board.loc["R", "paired_diff_base"] == pytest.approx(-0.2)
+    assert board.loc["R", "paired_diff_filtered"] == pytest.approx(0.0, abs=1e-12)
+    assert board.loc["R", "filtered_law"] == "PROPOSED_KF" and board.loc["R", "observation"] == "estimator"
+    md = leaderboard_markdown(board.reset_index())
+    assert "(base PROPOSED; obs estimator)" in md and "(PROPOSED_KF)" in md

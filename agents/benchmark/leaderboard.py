@@ -68,7 +68,8 @@ def paired_difference(episodes: pd.DataFrame, tier: str, policy: str, other: str
 def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_METRICS,
                 n_resamples: int = DEFAULT_RESAMPLES, seed: int = DEFAULT_BOOTSTRAP_SEED,
                 confidence: float = 0.95, progress: bool = False,
-                bases: Mapping[str, str] | None = None) -> pd.DataFrame:
+                bases: Mapping[str, str] | None = None, observations: Mapping[str, str] | None = None,
+                filtered: Mapping[str, str] | None = None) -> pd.DataFrame:
     """Aggregate a per-episode table into the leaderboard, one row per (tier, policy).
 
     Args:
@@ -80,6 +81,12 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
         bases: residual methods' base controllers (``{policy: base policy}``, see
             :func:`residual_bases`): adds ``base`` and the paired difference against it
             (``paired_diff_base``, ``_lo``, ``_hi``) where the base was scored on the tier.
+        observations: residual methods' observation (``{policy: "raw" | "estimator"}``, see
+            :func:`~agents.benchmark.policies.residual_observations`): the column ``observation``.
+        filtered: residual methods whose observation carries a target filter their base lacks
+            (``{policy: the same law on that filter}``, see
+            :func:`~agents.benchmark.policies.filtered_laws`): adds ``filtered_law`` and the paired
+            difference against it (``paired_diff_filtered``, ``_lo``, ``_hi``).
 
     Returns:
         columns tier, policy, kind, runs, episodes, for each metric ``<m>_iqm``,
@@ -149,17 +156,20 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
                 board.loc[i, ["paired_diff", "paired_diff_lo", "paired_diff_hi"]] = paired_difference(
                     ep_t, tier, board.at[i, "policy"], best, m0, n_resamples=n_resamples, seed=seed,
                     confidence=confidence)
-    board["base"] = ""
-    for c in ("paired_diff_base", "paired_diff_base_lo", "paired_diff_base_hi"):
-        board[c] = math.nan
-    for i in board.index:
-        base = (bases or {}).get(board.at[i, "policy"])
-        ep_t = episodes[episodes["tier"] == board.at[i, "tier"]]
-        if base and (ep_t["policy"] == base).any():
-            board.at[i, "base"] = base
-            board.loc[i, ["paired_diff_base", "paired_diff_base_lo", "paired_diff_base_hi"]] = paired_difference(
-                ep_t, board.at[i, "tier"], board.at[i, "policy"], base, m0, n_resamples=n_resamples, seed=seed,
-                confidence=confidence)
+    board["observation"] = [str((observations or {}).get(p, "")) for p in board["policy"]]
+    for col, table in (("base", bases), ("filtered_law", filtered)):
+        key = "paired_diff_" + ("base" if col == "base" else "filtered")
+        board[col] = ""
+        for c in (key, f"{key}_lo", f"{key}_hi"):
+            board[c] = math.nan
+        for i in board.index:
+            other = (table or {}).get(board.at[i, "policy"])
+            ep_t = episodes[episodes["tier"] == board.at[i, "tier"]]
+            if other and (ep_t["policy"] == other).any():
+                board.at[i, col] = other
+                board.loc[i, [key, f"{key}_lo", f"{key}_hi"]] = paired_difference(
+                    ep_t, board.at[i, "tier"], board.at[i, "policy"], other, m0, n_resamples=n_resamples,
+                    seed=seed, confidence=confidence)
     if (board["kind"] == "reference").any():  # floors (agents/benchmark/floors.py): their gap column
         from agents.benchmark.floors import add_gap_closed
 
@@ -257,7 +267,10 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
              "classical baseline (rliable's probability of improvement, unpaired); paired diff = mean over the "
              "test seeds of (this policy's steady-state error - the best classical's on the same seed), runs "
              "averaged per seed, with a 95 % bootstrap CI over seeds (negative: better); for a residual agent the "
-             "same against its own base controller; a terminated episode scores the loss threshold.", ""]
+             "same against its own base controller (obs: what its observation carries: raw = the env's fields "
+             "and the base action, estimator = also a target filter's estimate), and, where that filter is one "
+             "its base lacks, against the same law on that filter; a terminated episode scores the loss "
+             "threshold.", ""]
     m0 = metrics[0]
     for tier, sub in board.groupby("tier", sort=False):
         best = sub["best_classical"].iloc[0]
@@ -270,6 +283,8 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
                  "terminated"]
         has_base = "base" in sub and (sub["base"].fillna("") != "").any()
         head += ["paired diff vs its base [m]"] if has_base else []
+        has_filtered = "filtered_law" in sub and (sub["filtered_law"].fillna("") != "").any()
+        head += ["paired diff vs its base's law on its observation's filter [m]"] if has_filtered else []
         gap = "gap_closed" in sub and sub["gap_closed"].notna().any()  # floors present (agents/benchmark/floors.py)
         head += ["gap closed"] if gap else []
         lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -288,7 +303,11 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
             cells.append(f"{100 * r['termination_rate']:.0f} %")
             if has_base:
                 ci = _fmt_ci(r["paired_diff_base"], r["paired_diff_base_lo"], r["paired_diff_base_hi"])
-                cells.append(f"{ci} (base {_md(r['base'])})" if r.get("base") else "-")
+                obs = f"; obs {_md(r['observation'])}" if r.get("observation") else ""
+                cells.append(f"{ci} (base {_md(r['base'])}{obs})" if r.get("base") else "-")
+            if has_filtered:
+                ci = _fmt_ci(r["paired_diff_filtered"], r["paired_diff_filtered_lo"], r["paired_diff_filtered_hi"])
+                cells.append(f"{ci} ({_md(r['filtered_law'])})" if r.get("filtered_law") else "-")
             if gap:
                 cells.append("-" if not np.isfinite(r["gap_closed"]) else f"{r['gap_closed']:.2f}")
             lines.append("| " + " | ".join(cells) + " |")

@@ -257,24 +257,65 @@ def build_policy(spec: PolicySpec, run: str | None, env_id: str, task_spec: Any,
     return _ObsPrefix(policy, width) if width < obs_width else policy
 
 
+#: a base controller without a target filter of its own -> the same control law on the target filter
+#: that an ``estimator`` observation carries (what a residual on the base can copy from its input)
+FILTERED_LAW: dict[str, str] = {"PROPOSED": "PROPOSED_KF"}
+
+
+def _residual_settings(spec: PolicySpec) -> set[tuple[str, str] | None]:
+    """{(base controller, observation)} over a learned method's runs (None: not a residual or unreadable)."""
+    import yaml
+
+    found: set[tuple[str, str] | None] = set()
+    for r in spec.runs:
+        try:
+            cfg = yaml.safe_load((Path(r) / "config.yaml").read_text()) or {}
+        except (OSError, yaml.YAMLError):
+            found.add(None)
+            continue
+        run = cfg.get("run", {}) if isinstance(cfg, dict) else {}
+        if run.get("mode") != "residual":
+            found.add(None)
+            continue
+        builder = cfg.get("observation") if isinstance(cfg.get("observation"), dict) else {}
+        residual = cfg.get("residual") if isinstance(cfg.get("residual"), dict) else {}
+        obs = builder.get("observation") or residual.get("observation") or run.get("observation") or "raw"
+        found.add((str(run.get("controller")), str(obs)))
+    return found
+
+
 def residual_bases(specs: Iterable[PolicySpec]) -> dict[str, str]:
     """``{label: base controller}`` of the learned methods whose runs are residual agents on one
     base controller (read from each run's ``config.yaml``); methods mixing bases are left out."""
-    import yaml
-
     out: dict[str, str] = {}
     for s in specs:
         if s.kind != "learned" or not s.runs:
             continue
-        found = set()
-        for r in s.runs:
-            try:
-                cfg = yaml.safe_load((Path(r) / "config.yaml").read_text()) or {}
-            except (OSError, yaml.YAMLError):
-                found.add(None)
-                continue
-            run = cfg.get("run", {}) if isinstance(cfg, dict) else {}
-            found.add(run.get("controller") if run.get("mode") == "residual" else None)
-        if len(found) == 1 and None not in found:
-            out[s.label] = str(found.pop())
+        found = _residual_settings(s)
+        bases = {f[0] for f in found if f is not None}
+        if None not in found and len(bases) == 1:
+            out[s.label] = bases.pop()
     return out
+
+
+def residual_observations(specs: Iterable[PolicySpec]) -> dict[str, str]:
+    """``{label: observation}`` ("raw" or "estimator") of the residual methods whose runs agree."""
+    out: dict[str, str] = {}
+    for s in specs:
+        if s.kind != "learned" or not s.runs:
+            continue
+        found = _residual_settings(s)
+        obs = {f[1] for f in found if f is not None}
+        if None not in found and len(obs) == 1:
+            out[s.label] = obs.pop()
+    return out
+
+
+def filtered_laws(specs: Iterable[PolicySpec]) -> dict[str, str]:
+    """``{label: controller}`` for residual methods whose observation carries a target filter their
+    base lacks: the same law on that filter (:data:`FILTERED_LAW`), the fair comparison for the
+    information the observation carries in."""
+    specs = list(specs)
+    bases, obs = residual_bases(specs), residual_observations(specs)
+    return {label: FILTERED_LAW[base] for label, base in bases.items()
+            if obs.get(label) == "estimator" and base in FILTERED_LAW}

@@ -212,8 +212,9 @@ _BOARD_NUMBERS = tuple(f"{m}_{s}{b}" for m in ("true_steady_mean", "true_full_me
 _BOARD_COUNTS = ("runs", "episodes")
 _BOARD_OPTIONAL_NUMBERS = ("true_steady_mean_iqm_change_pct", "poi", "poi_lo", "poi_hi", "paired_diff",
                            "paired_diff_lo", "paired_diff_hi", "paired_diff_base", "paired_diff_base_lo",
-                           "paired_diff_base_hi", "gap_closed")
-_BOARD_OPTIONAL_TEXT = ("best_classical", "base")
+                           "paired_diff_base_hi", "paired_diff_filtered", "paired_diff_filtered_lo",
+                           "paired_diff_filtered_hi", "gap_closed")
+_BOARD_OPTIONAL_TEXT = ("best_classical", "base", "observation", "filtered_law")
 
 
 def _inside(bench: Path) -> None:
@@ -631,7 +632,7 @@ def _fig_replay(df: pd.DataFrame, color: str, every: int = 10, trail_s: float = 
 
 # --- page ----------------------------------------------------------------------------------
 
-def _columns_html(board: pd.DataFrame, gap: bool, has_base: bool) -> str:
+def _columns_html(board: pd.DataFrame, gap: bool, has_base: bool, has_filtered: bool = False) -> str:
     """What each column of the leaderboard tables means (shown above them)."""
     items = [
         ("policy", "a scripted controller, or a learned method (its training runs pooled). The square beside it "
@@ -663,7 +664,15 @@ def _columns_html(board: pd.DataFrame, gap: bool, has_base: bool) -> str:
     if has_base:
         items.append(("paired diff vs its base [m] [95 % CI]", "for a residual agent (a learned correction on top "
                                                                "of a scripted controller): the same paired "
-                                                               "difference against its own base controller."))
+                                                               "difference against its own base controller; "
+                                                               "obs: what its observation carries (raw: the env's "
+                                                               "fields and the base action; estimator: also a "
+                                                               "target filter's estimate)."))
+    if has_filtered:
+        items.append(("paired diff vs its base's law on its observation's filter [m] [95 % CI]",
+                      "for a residual whose observation carries a target filter its base lacks: the paired "
+                      "difference against the same control law run on that filter. Most of a gain over the base "
+                      "that this column does not show is the filter's information, not learned control."))
     items += [
         ("P(better) [95 % CI]", "the probability that an episode of this policy has a lower steady-state error "
                                 "than an episode of the best classical (rliable's probability of improvement, "
@@ -703,8 +712,9 @@ def _columns_html(board: pd.DataFrame, gap: bool, has_base: bool) -> str:
 def _table_html(board: pd.DataFrame, styles: dict[str, _Style]) -> str:
     m0 = "true_steady_mean"
     has_base = board["base"].notna().any()
+    has_filtered = board["filtered_law"].fillna("").astype(bool).any()
     gap = board["gap_closed"].notna().any()  # floors present (agents/benchmark/floors.py)
-    parts = [_columns_html(board, gap, has_base)]
+    parts = [_columns_html(board, gap, has_base, has_filtered)]
     for tier, sub in board.groupby("tier", sort=False):
         best = sub["best_classical"].iloc[0]
         parts.append(f"<h3>{html.escape(str(tier))}" + (f" (best classical: {html.escape(str(best))})" if
@@ -713,6 +723,7 @@ def _table_html(board: pd.DataFrame, styles: dict[str, _Style]) -> str:
                 "full IQM [m] [95 % CI]", "full mean [m] [95 % CI]", "IQM vs best classical [%]",
                 "paired diff vs best classical [m] [95 % CI]"]
         head += ["paired diff vs its base [m] [95 % CI]"] if has_base else []
+        head += ["paired diff vs its base's law on its observation's filter [m] [95 % CI]"] if has_filtered else []
         head += ["P(better) [95 % CI]", "terminated [%]"]
         head += ["gap closed [-]"] if gap else []
         parts.append("<table class='leaderboard' data-tier='" + html.escape(str(tier)) + "'><thead><tr>" +
@@ -734,7 +745,11 @@ def _table_html(board: pd.DataFrame, styles: dict[str, _Style]) -> str:
                                                             r["paired_diff_hi"])]
             if has_base:
                 d = signed(r["paired_diff_base"], r["paired_diff_base_lo"], r["paired_diff_base_hi"])
-                cells.append(f"{d} (base {r['base']})" if r["base"] and d != "-" else "-")
+                obs = f"; obs {r['observation']}" if r["observation"] else ""
+                cells.append(f"{d} (base {r['base']}{obs})" if r["base"] and d != "-" else "-")
+            if has_filtered:
+                d = signed(r["paired_diff_filtered"], r["paired_diff_filtered_lo"], r["paired_diff_filtered_hi"])
+                cells.append(f"{d} ({r['filtered_law']})" if r["filtered_law"] and d != "-" else "-")
             cells += ["-" if not np.isfinite(r["poi"]) else f"{r['poi']:.2f} [{r['poi_lo']:.2f}, {r['poi_hi']:.2f}]",
                       "-" if not np.isfinite(r["termination_rate"]) else f"{100 * r['termination_rate']:.0f} %"]
             if gap:

@@ -15,7 +15,14 @@ import auv_follow_env  # noqa: F401  (registers the ids)
 from agents.benchmark.evaluation import evaluate_tier
 from agents.benchmark.leaderboard import leaderboard
 from agents.benchmark.outputs import BenchmarkResult, provenance, write_outputs
-from agents.benchmark.policies import PolicySpec, _controllers, parse_policy, residual_bases
+from agents.benchmark.policies import (
+    PolicySpec,
+    _controllers,
+    filtered_laws,
+    parse_policy,
+    residual_bases,
+    residual_observations,
+)
 from agents.benchmark.protocol import (
     CLASSICAL,
     LEADERBOARD_METRICS,
@@ -97,7 +104,8 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
         frames += [floor_episodes(t, seed_map[t], progress=progress) for t in tiers if t in V1_TIERS]
     episodes = pd.concat(frames, ignore_index=True)
     board = leaderboard(episodes, n_resamples=n_resamples, seed=bootstrap_seed, progress=progress,
-                        bases=residual_bases(specs))
+                        bases=residual_bases(specs),
+                        observations=residual_observations(specs), filtered=filtered_laws(specs))
     config = {"command": command, "tiers": {t: resolve_tier(t)[1] for t in tiers}, "seeds": seed_map,
               "policies": [dataclasses.asdict(s) for s in specs], "metrics": list(LEADERBOARD_METRICS),
               "n_resamples": n_resamples, "bootstrap_seed": bootstrap_seed, "confidence": 0.95,
