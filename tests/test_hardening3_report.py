@@ -399,3 +399,21 @@ def test_page_explains_every_column_once_and_has_one_heading_per_section(bench, 
     # self-contained: plotly.js inline, nothing fetched
     assert not re.search(r"<script[^>]*\bsrc=", page) and "<link rel='stylesheet'" not in page
     assert "https://cdn" not in body
+
+
+def test_every_policy_on_a_tier_has_a_colour_far_from_the_others():
+    """On the committed leaderboard (15 policies on Easy), any two policies that share a tier,
+    floors aside (they are dashed), differ by at least 60 in the redmean distance (two blues such
+    as #2b8cbe and #3288bd are 14 apart) whether or not they are drawn by default."""
+    import itertools
+
+    from agents.benchmark.report import _checked_board, _distance, _policy_styles
+
+    assert _distance("#2b8cbe", "#3288bd") < 20  # the pair the rule exists for
+    root = Path(__file__).resolve().parents[1]
+    board = _checked_board(pd.read_csv(root / "results" / "benchmark" / "leaderboard.csv", comment="#"), "board")
+    styles = _policy_styles(board)
+    for tier, sub in board.groupby("tier"):
+        cols = [(p, styles[p].color) for p in sub["policy"] if styles[p].family != "floor"]
+        worst = min((_distance(a, b), p, q) for (p, a), (q, b) in itertools.combinations(cols, 2))
+        assert worst[0] >= 60, (tier, worst)

@@ -142,8 +142,8 @@ def _policy_styles(board: pd.DataFrame, shown_per_family: int = SHOWN_PER_FAMILY
     and best first, each take the first free colour of the family's palette (strong colours
     first) that differs by :data:`_DISTINCT` from the colours of the default-drawn policies (of
     any family but the floors, which are also told by their dashes and diamonds) on its tiers,
-    else the most different of the next few; the others take the remaining colours in palette
-    order."""
+    else the most different of the next few; each of the others takes the free colour farthest
+    from every colour already handed out on its tiers (all of them share the tables)."""
     m = "true_steady_mean_iqm"
     family = {}
     for p, k in zip(board["policy"], board["kind"], strict=True):
@@ -165,6 +165,7 @@ def _policy_styles(board: pd.DataFrame, shown_per_family: int = SHOWN_PER_FAMILY
             tiers_of.setdefault(p, set()).add(str(tier))
     styles: dict[str, _Style] = {}
     drawn: dict[str, str] = {}
+    chosen_all: dict[str, str] = {}  # every colour handed out so far (earlier families)
     for fi, f in enumerate(_FAMILIES):
         members = sorted((p for p in family if family[p] == f),
                          key=lambda p: (place[p], float(np.mean(ratio[p])) if ratio[p] else math.inf))
@@ -186,14 +187,18 @@ def _policy_styles(board: pd.DataFrame, shown_per_family: int = SHOWN_PER_FAMILY
                 pick = next((c for c, g in zip(free, gap, strict=True) if g >= _DISTINCT), None)
                 if pick is None:
                     pick = max(zip(free[:6], gap[:6], strict=False), key=lambda cg: cg[1])[0]
-            else:
-                pick = free[0]
+            else:  # drawn on a click: the free colour farthest from every colour already on its tiers
+                near = [c for q, c in {**chosen_all, **chosen}.items() if tiers_of[q] & tiers_of[p]
+                        and family[q] != "floor"]
+                gap = [min((_distance(c, n) for n in near), default=math.inf) for c in free]
+                pick = free[int(np.argmax(gap))]
             free.remove(pick)
             chosen[p] = pick
             if p in shown:
                 drawn[p] = pick
         for r, p in enumerate(members):
             styles[p] = _Style(chosen[p], f, fi * 10_000 + r, p in shown)
+        chosen_all.update(chosen)
     return styles
 
 
