@@ -17,13 +17,27 @@ minibatches of the whole rollout.
 (running mean / variance; the reward divided by the running std of the discounted return),
 with ``normalize=dict(...)``'s ``clip_obs``, ``clip_reward``, ``epsilon`` and ``gamma`` honoured as SB3
 does (defaults 10, 10, 1e-8 and the algorithm's gamma).
-``lr_schedule``: ``constant`` (the constructor's default, what the first committed runs used)
-or ``linear`` (the YAML default: decays to 0 at ``n_timesteps``, as CleanRL's ``anneal_lr``;
+``lr_schedule``: ``linear`` (the default: decays to 0 at the budget, as CleanRL's ``anneal_lr``;
 the policy's std shrinks over training, and at a constant rate the late updates grew until
-the evaluation curves turned back up). ``obs_norm_window`` (samples, 0 = SB3's never-forgetting
-statistics): the observation statistics forget samples older than about that many; without it
-the early episodes' metre-sized errors set the scale of the error fields for the whole run (the
-Easy runs' est_ref_dx std was 1.08 m for a 0.02 m steady error).
+the evaluation curves turned back up) or ``constant`` (what the first committed runs used; every
+run records its schedule under ``training:`` in ``config.yaml``).
+
+**Normalisers that forget.** ``obs_norm_window`` and ``reward_norm_window`` (samples; 1,000,000
+by default, 0 = SB3's never-forgetting statistics) cap the count of the running statistics, so a
+new batch of b samples weighs b / (window + b) and samples older than about a window fade out.
+Without them the first few million steps' metre-sized errors set both scales for the whole run:
+the return std stayed at 200-480 while the late episodes' returns were a thousand times smaller
+(a step's normalised reward about -3e-4, the value loss 3e-6), and the estimated reference error's
+std at 1-2 m for a 0.02 m steady error. A fixed physical reward scale was the alternative; the
+window needs no per-tier constant and follows the policy as it improves. Both windows are
+recorded in ``config.yaml`` (``training:``) and the observation window in ``vecnormalize.json``.
+
+**Smoothness** (both off by default): ``action_rate_coef`` c adds -c ||a_k - a_(k-1)||^2 (action
+units, none at an episode's first step) to the training reward (the env's own reward and every
+score are unchanged); ``action_filter`` alpha in (0, 1) makes the agent's action the state of a
+first-order low-pass, ``u_k = u_(k-1) + alpha (a_k - u_(k-1))``, with ``u_(k-1)`` appended to the
+observation (so the policy stays Markov; the loaded agent filters the same way). ``progress.csv``
+logs the mean |dF_u| per step of the executed actions.
 
 **Residuals: use ``gae_lambda=1``.** With lambda < 1 the advantage bootstraps from the critic's
 value of the *next* state, which the action moves; early on the critic is poor and its errors,
@@ -70,7 +84,8 @@ and ``train_seconds``, refreshed at every checkpoint and evaluation), ``model.zi
 file of tensors and plain values, loaded with ``weights_only=True``: loading runs no pickled
 code), ``vecnormalize.json`` (:mod:`agents.training.obs_stats`), ``checkpoints/model_<steps>_steps.zip``
 with ``model_vecnormalize_<steps>_steps.json``, ``eval.csv`` (the learning curve: evaluations
-on ``n_eval_seeds`` fixed training-range seeds), ``progress.csv`` (per update: losses, episode
+on ``n_eval_seeds`` fixed seeds from ``eval_seed`` (990,000), none of them a training env's seed),
+``progress.csv`` (per update: losses, episode
 statistics, throughput) and ``tb/`` (TensorBoard, if installed).
 """
 
