@@ -481,6 +481,10 @@ def test_summary_of_a_hand_made_leaderboard():
     assert lines[7].startswith("full table: /r/b/leaderboard.md (and episodes.parquet") and len(lines) == 8
     board.loc[1, "true_steady_mean_iqm_hi"] = 0.095  # CIs overlap: not met
     assert "not met, L1 -40.0 % vs C1, CIs overlap" in B.benchmark_summary(board)
+    # a learned policy clearly worse (0.13 [0.12, 0.14] against [0.09, 0.11]): apart, and not met
+    board.loc[1, ["true_steady_mean_iqm", "true_steady_mean_iqm_lo", "true_steady_mean_iqm_hi"]] = [0.13, 0.12, 0.14]
+    assert "not met, C1 +0.0 % vs C1" not in B.benchmark_summary(board)
+    assert "not met, L1 +30.0 % vs C1, CIs apart" in B.benchmark_summary(board)
 
 
 def test_cli_prints_a_short_summary(tmp_path, capsys):
