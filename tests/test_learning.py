@@ -39,6 +39,11 @@ def test_windowed_running_mean_forgets_geometrically():
     for _ in range(k):
         rms.update(np.ones(B))
     assert rms.mean == pytest.approx(1.0 - (W / (W + B)) ** k, abs=1e-12)
+    # the variance: with q = W / (W + B) the update is var' = q var + (1 - q) q (1 - m)^2, which from
+    # var ~ 0 after the zeros gives var_k = q^k (1 - q^k) = m_k (1 - m_k): a population that is
+    # a share m_k of ones (the zeros' own variance, below 1e-5 after 50 batches, decays as q^k)
+    m = rms.mean
+    assert rms.var == pytest.approx(m * (1 - m), abs=1e-5)
 
 
 def test_unwindowed_running_mean_never_forgets():
@@ -71,33 +76,44 @@ def test_both_normalisers_forget_by_default_and_the_run_records_it(tmp_path):
 
 # --- the evaluated policy is the trained one ---------------------------------------------------
 
-def test_predict_equals_the_training_time_actor_with_linear_skip(tmp_path):
-    """A loaded agent's deterministic action is the training-time mean (actor plus the linear
-    skip term), clipped to the env's action box, on the same observations."""
+OPTIONS = {"plain": [], "linear_skip": ["--hp", "policy_kwargs=dict(linear_skip=True)"],
+           "recurrent": ["--hp", "policy_kwargs=dict(recurrent=True, gru_size=8)"],
+           "privileged_critic": ["--hp", "policy_kwargs=dict(privileged_critic=True, linear_skip=True)"],
+           "action_filter": ["--hp", "action_filter=0.5", "--hp", "policy_kwargs=dict(linear_skip=True)"]}
+
+
+@pytest.mark.parametrize("option", list(OPTIONS))
+def test_predict_equals_the_training_time_actor(tmp_path, option):
+    """For every policy option, a loaded agent's deterministic action is what the training loop
+    computes on the same observations: features from a second builder run beside it,
+    normalised, through the trunk (with its GRU state carried), the mean of ``heads`` (actor plus
+    the linear skip term, which is made non-zero here) and the builder's action."""
     import gymnasium as gym
     import torch
 
+    from agents.training.batched_obs import ObservationBuilder
     from agents.training.loading import load_agent
 
-    _tiny_bppo(tmp_path, "--hp", "policy_kwargs=dict(linear_skip=True)")
+    _tiny_bppo(tmp_path, *OPTIONS[option])
     agent = load_agent(tmp_path / "r")
     net = agent.net
-    with torch.no_grad():  # make the skip term matter (it starts at zero)
-        net.skip.weight.copy_(torch.linspace(-0.5, 0.5, net.skip.weight.numel()).reshape(net.skip.weight.shape))
-    from agents.training.batched_obs import ObservationBuilder
-
+    if net.skip is not None:
+        with torch.no_grad():  # make the skip term matter (it starts at zero)
+            w = net.skip.weight
+            w.copy_(torch.linspace(-0.5, 0.5, w.numel()).reshape(w.shape))
     ref = ObservationBuilder(agent.task_spec, **agent.builder_kwargs)  # the same features, built beside it
     env = gym.make_vec(EASY, num_envs=3, vectorization_mode="vector_entry_point")
     obs, _ = env.reset(seed=[11, 12, 13])
     start = np.ones(3, dtype=bool)
-    for _ in range(5):
+    h = net.initial_state(3)
+    for _ in range(6):
         action, _ = agent.predict(obs, episode_start=start, deterministic=True)
         feats = agent.normalize(ref.observe(obs, start))
         with torch.no_grad():
-            x, _ = net.trunk(torch.as_tensor(feats, dtype=torch.float32), None, torch.as_tensor(start))
+            x, h = net.trunk(torch.as_tensor(feats, dtype=torch.float32), h, torch.as_tensor(start))
             mean, _ = net.heads(x, torch.zeros(3, net.priv) if net.priv else None)
-            without_skip = net.actor(x)
-        assert np.abs(mean - without_skip).max() > 1e-3  # the skip term is really part of the mean
+            if net.skip is not None:
+                assert np.abs(mean - net.actor(x)).max() > 1e-3  # the skip term is really part of the mean
         want = ref.act(mean.numpy().astype(np.float64))  # (act tells ref's observer the force: once per step)
         np.testing.assert_allclose(action, want, rtol=0, atol=1e-6)
         obs, *_ = env.step(action)
