@@ -42,12 +42,14 @@ def measure(policy, env_id: str, seeds: list[int], progress: bool = True) -> dic
     prev = np.zeros((n, 3))
     f_sum, df_sum, steps, df_steps = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n), np.zeros(n)
     err_sum, err_n = np.zeros(n), np.zeros(n)
+    spin_sum = np.zeros(n)  # |yaw rate| [rad/s] (observation field 2)
     t0 = float(spec.steady_start_s) if hasattr(spec, "steady_start_s") else 10.0
-    for k in tqdm(range(int(spec.n_steps)), desc="steps", disable=not progress, leave=False):
+    for k in tqdm(range(int(spec.n_steps)), desc=f"{n} episodes", disable=not progress, leave=False, mininterval=2):
         action, _ = policy.predict(obs, episode_start=start, deterministic=True)
         force = np.clip(np.asarray(action, dtype=np.float64).reshape(n, 3), -1.0, 1.0) * limits
         live = alive.copy()
         f_sum[live] += np.abs(force[live])
+        spin_sum[live] += np.abs(np.asarray(obs, dtype=np.float64)[live, 2])
         steps[live] += 1
         if k > 0:
             df_sum[live] += np.abs(force[live] - prev[live])
@@ -69,6 +71,7 @@ def measure(policy, env_id: str, seeds: list[int], progress: bool = True) -> dic
     out = {f"F_{a}": float(f[:, i].mean()) for i, a in enumerate("uvr")}
     out.update({f"dF_{a}": float(df[:, i].mean()) for i, a in enumerate("uvr")})
     out["steady_mean"] = float(np.mean(err_sum / np.maximum(err_n, 1)))
+    out["yaw_rate"] = float(np.mean(spin_sum / np.maximum(steps, 1)))
     return out
 
 
@@ -92,20 +95,22 @@ def main(argv: list[str] | None = None) -> int:
         row = {k: float(np.mean([m[k] for m in per_run])) for k in per_run[0]}
         rows.append((spec.label, len(runs), row))
         print(f"{spec.label}: steady error {row['steady_mean']:.4f} m, |dF_u| {row['dF_u']:.2f} N/step, "
-              f"|F_u| {row['F_u']:.2f} N", file=sys.stderr)
+              f"|F_u| {row['F_u']:.2f} N, |r| {row['yaw_rate']:.3f} rad/s", file=sys.stderr)
     lines = [f"# Thruster activity on {name} ({env_id})", "",
              f"Reproduce: `python -m experiments.smoothness --tier {name} --seeds {a.seeds} --policies "
              + " ".join(f"'{x}'" for x in a.policies) + "`", "",
              f"The tier's first {a.seeds} published test seeds, one deterministic episode each; a learned method's "
              "numbers are the mean over its runs. |dF| = mean over steps of |F_k - F_(k-1)| (commanded force, "
              "N or N m per 0.05 s step); |F| = mean commanded magnitude; steady error = mean over episodes of "
-             "the steady-state (t >= 10 s) true tracking error [m].", "",
+             "the steady-state (t >= 10 s) true tracking error [m]; |r| = mean yaw rate magnitude [rad/s] (the "
+             "env scores position only: a policy that spins is not penalised by the score).", "",
              "| policy | runs | steady error [m] | mean abs dF_u [N/step] | mean abs dF_v [N/step] | "
-             "mean abs dF_r [N m/step] | mean abs F_u [N] | mean abs F_v [N] | mean abs F_r [N m] |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "mean abs dF_r [N m/step] | mean abs F_u [N] | mean abs F_v [N] | mean abs F_r [N m] | mean abs r "
+             "[rad/s] |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for label, k, r in rows:
         lines.append(f"| {label} | {k} | {r['steady_mean']:.4f} | {r['dF_u']:.2f} | {r['dF_v']:.2f} | "
-                     f"{r['dF_r']:.3f} | {r['F_u']:.2f} | {r['F_v']:.2f} | {r['F_r']:.3f} |")
+                     f"{r['dF_r']:.3f} | {r['F_u']:.2f} | {r['F_v']:.2f} | {r['F_r']:.3f} | {r['yaw_rate']:.3f} |")
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")

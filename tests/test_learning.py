@@ -243,3 +243,15 @@ def test_smoothness_options_train_record_and_load(tmp_path):
     assert all(float(r["dF_u_mean_N"]) >= 0 for r in rows)
     agent = load_agent(run)
     assert agent.builder.action_filter == 0.5
+
+
+def test_heading_term_is_zero_on_the_reference_heading_and_two_facing_away():
+    """1 - cos(psi_ref - psi): 0 on the reference heading, 1 at 90 degrees, 2 facing the opposite
+    way (by hand); no info, no term."""
+    from agents.training.batched_ppo import _heading_penalty
+
+    ref = np.array([[0.0, 0.0, 0.3], [0.0, 0.0, 0.3], [0.0, 0.0, 0.3]])
+    pose = np.array([[5.0, 1.0, 0.3], [5.0, 1.0, 0.3 + np.pi / 2], [5.0, 1.0, 0.3 - np.pi]])
+    np.testing.assert_allclose(_heading_penalty({"true_reference": ref, "follower_pose": pose}, 3), [0, 1, 2],
+                               atol=1e-12)
+    np.testing.assert_array_equal(_heading_penalty({}, 2), [0.0, 0.0])

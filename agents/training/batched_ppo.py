@@ -37,7 +37,10 @@ units, none at an episode's first step) to the training reward (the env's own re
 score are unchanged); ``action_filter`` alpha in (0, 1) makes the agent's action the state of a
 first-order low-pass, ``u_k = u_(k-1) + alpha (a_k - u_(k-1))``, with ``u_(k-1)`` appended to the
 observation (so the policy stays Markov; the loaded agent filters the same way). ``progress.csv``
-logs the mean |dF_u| per step of the executed actions.
+logs the mean |dF_u| per step of the executed actions. ``heading_coef`` c adds -c (1 - cos(psi_ref -
+psi)) with the true present reference heading (the env's reward scores position only, so a policy
+is free to spin: the first smooth runs held the yaw moment at its limit and turned at 7 rad/s;
+the term, privileged like the env's own reward, asks for the paper's heading).
 
 **Residuals: use ``gae_lambda=1``.** With lambda < 1 the advantage bootstraps from the critic's
 value of the *next* state, which the action moves; early on the critic is poor and its errors,
@@ -127,7 +130,7 @@ class BatchedPPO:
                  random_phase: bool = True, n_eval_seeds: int = 32, lr_schedule: str = "linear",
                  obs_norm_window: int = 1_000_000, reward_norm_window: int = 1_000_000, teacher: str | None = None,
                  teacher_link: str = "perfect", distill_steps: int = 0, action_rate_coef: float = 0.0,
-                 action_filter: float = 1.0) -> None:
+                 action_filter: float = 1.0, heading_coef: float = 0.0) -> None:
         self.__dict__.update({k: v for k, v in locals().items() if k != "self"})
 
 
@@ -248,6 +251,7 @@ def check_bppo_hyperparams(hp: dict[str, Any], n_envs: int | None = None) -> Non
     except ValueError as exc:
         raise ValueError(f"{exc} (samples; 0 = never forget)") from None
     _real("hyperparameter action_rate_coef", hp.get("action_rate_coef", 0.0), 0.0, math.inf)
+    _real("hyperparameter heading_coef", hp.get("heading_coef", 0.0), 0.0, math.inf)
     from agents.training.batched_obs import check_action_filter
 
     try:
@@ -544,6 +548,16 @@ def _check_finite_parameters(net: Any, steps: int) -> None:
                             "steps")
 
 
+def _heading_penalty(info: dict[str, Any], n: int) -> np.ndarray:
+    """1 - cos(psi_ref - psi) per env (0 when the follower holds the reference heading, 2 when it
+    faces the opposite way), from the env's true present reference and the follower's pose
+    (zeros if the env gives neither)."""
+    ref, pose = info.get("true_reference"), info.get("follower_pose")
+    if ref is None or pose is None:
+        return np.zeros(n)
+    return 1.0 - np.cos(np.asarray(ref)[:, 2] - np.asarray(pose)[:, 2])
+
+
 def _episode_errors(met: dict[str, Any]) -> list[float]:
     """Steady-state mean tracking errors [m] of the episodes that ended (the vector env's
     ``episode_metrics`` key ``steady_mean``: the true reference's error, eq. (65))."""
@@ -594,6 +608,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                             "reward_norm_window": int(hp["reward_norm_window"]),
                             "norm_obs": norm_obs, "norm_reward": norm_rew,
                             "action_rate_coef": float(hp["action_rate_coef"]),
+                            "heading_coef": float(hp["heading_coef"]),
                             "action_filter": float(hp["action_filter"])}
     start_steps = 0
     if cfg.resume_from is not None:
@@ -674,7 +689,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
         resolved["train_seconds"] = round(float(seconds), 2)
         write_yaml(run / "config.yaml", resolved)
 
-    rate_coef = float(hp["action_rate_coef"])
+    rate_coef, heading_coef = float(hp["action_rate_coef"]), float(hp["heading_coef"])
     prev_exec = np.zeros((n_envs, 3))  # the env action of each env's previous step (in [-1, 1])
     limits = np.asarray(env.spec.force_limits, dtype=np.float64)
     teacher, distill_steps = _make_teacher(hp, env), int(hp["distill_steps"])
@@ -747,6 +762,8 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                         df_n += int(valid.sum())
                     if rate_coef > 0.0:  # the action-rate term: -c ||a_k - a_{k-1}||^2 (action units)
                         rew = rew - rate_coef * np.sum(change * change, axis=1)
+                    if heading_coef > 0.0:  # the heading term: -c (1 - cos(psi_ref - psi)), true present psi_ref
+                        rew = rew - heading_coef * _heading_penalty(info, n_envs)
                     done = term | trunc
                     if norm_rew:
                         ret_acc = ret_acc * rgamma + rew
