@@ -1,3 +1,4 @@
-"""SB3 agents for AUVFollow: a residual wrapper over the paper's controllers, training and
-evaluation entry points (PPO, SAC, TD3), rl-zoo3-format hyperparameters and the
-``auv-follow`` command line (train | evaluate | compare). See ``agents/README.md``."""
+"""Learned agents and the benchmark: ``agents.training`` makes and loads run directories (SB3
+and the batched PPO, residual or from scratch), ``agents.benchmark`` scores any policy on the
+tiers' published test seeds (leaderboard, floors, report, sweeps), ``agents.cli`` is the
+``auv-follow`` command. Data flows one way: cli -> benchmark -> training. See ``agents/README.md``."""
