@@ -5,10 +5,11 @@ and the floors on the same evaluation seeds.
     python -m experiments.learning_curves --runs runs/my-run --out results/tmp/curves.png
 
 Each run's ``eval.csv`` holds, every million steps, the steady-state (t >= 10 s) true-reference
-error over its fixed evaluation seeds (training-range seeds, 500-531 by default). On the same
-seeds and tier this script scores the best classical controllers (PROPOSED_KF_DOB and MPC) and
-computes the information floor (agents/benchmark/floors.py), and draws them as horizontal lines: a curve
-that flattens above them has converged to something worse; one still falling was stopped early.
+error over its fixed evaluation seeds (990,000-990,031 by default, 500-531 for runs made before
+those were held out). On each run's own seeds and tier this script scores the best classical
+controllers (PROPOSED_KF_DOB and MPC) and computes the information floor
+(agents/benchmark/floors.py), and draws them as horizontal lines: a curve that flattens above
+them has converged to something worse; one still falling was stopped early.
 Writes the PNG and a Markdown table (final IQM per run, steps, wall-clock minutes).
 """
 
@@ -125,13 +126,13 @@ def main(argv: list[str] | None = None) -> int:
              "|---|---|---|---|---|---|---|---|---|---|"]
     for ax, env in zip(axes[0], envs, strict=True):
         mine = [i for i in info if i["env"] == env]
-        refs = references(env, mine[0]["seeds"])
-        best = min(refs[n] for n in BASELINES)
+        # references on each run's own evaluation seeds (runs of different versions use different ones)
+        ref_sets = {tuple(i["seeds"]): references(env, i["seeds"]) for i in mine}
         groups: dict[str, list[dict]] = {}
         for i in mine:
             groups.setdefault(method_name(i["run"].name), []).append(i)
         for k, (method, members) in enumerate(groups.items()):
-            color = f"C{k % 10}"
+            color = plt.get_cmap("tab20")(k % 20) if len(groups) > 10 else f"C{k % 10}"
             curves = []
             for i in members:
                 ev = i["eval"]
@@ -150,14 +151,18 @@ def main(argv: list[str] | None = None) -> int:
             y = ev["true_steady_iqm_m"].replace(np.inf, np.nan)
             label = i["run"].name
             cfg = i["cfg"]
+            refs = ref_sets[tuple(i["seeds"])]
+            best = min(refs[n] for n in BASELINES)
             lines.append(f"| {label} | {env} | {i['mode']} | {cfg.get('run', {}).get('observation', '-')} "
                          f"| {int(cfg.get('steps_done', ev['steps'].iloc[-1])):,} "
                          f"| {float(cfg.get('train_seconds', 0.0)) / 60:.0f} | {y.iloc[0]:.4f} | {y.iloc[-1]:.4f} "
                          f"| {best:.4f} | {refs['information floor']:.4f} |")
         styles = {"PROPOSED_KF_DOB": ("k", "--"), "MPC": ("k", "-."), "information floor": ("0.45", ":")}
-        for name, v in refs.items():
-            c, ls = styles[name]
-            ax.axhline(v, color=c, ls=ls, lw=1.2, label=f"{name} {v:.4f} m")
+        for seeds, refs in ref_sets.items():
+            where = f", seeds {seeds[0]}-{seeds[-1]}" if len(ref_sets) > 1 else ""
+            for name, v in refs.items():
+                c, ls = styles[name]
+                ax.axhline(v, color=c, ls=ls, lw=1.2, label=f"{name} {v:.4f} m{where}")
         ax.set_yscale("log")
         ax.set_xlabel("training env steps [millions]")
         ax.set_ylabel("steady-state error, IQM over eval seeds [m]")
