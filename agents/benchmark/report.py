@@ -471,7 +471,11 @@ def _fig_leaderboard(board: pd.DataFrame, styles: dict[str, _Style]):
         fig.update_xaxes(type="log", row=k, col=1)
         fig.update_yaxes(automargin=True, tickfont={"size": 11}, row=k, col=1)
     fig.update_xaxes(title_text="IQM of the steady-state error [m] (log scale)", row=len(tiers), col=1)
-    legend, extra = _legend(len(seen), columns=2)
+    # one column from the figure's left edge: the labels are long and the tick labels already take the
+    # left part of the plot area, so two columns there overran the figure's right edge
+    _, extra = _legend(len(seen), columns=1)
+    legend = {"orientation": "v", "yanchor": "top", "x": 0.0, "xref": "container", "xanchor": "left",
+              "font": {"size": 11}, "traceorder": "normal"}
     plot = 60 * len(tiers) + 19 * sum(sizes)
     legend["y"] = -60 / plot
     fig.update_layout(height=plot + extra + 110, legend=legend, margin={"l": 10, "r": 10, "t": 70, "b": extra + 40},
