@@ -255,3 +255,43 @@ def test_heading_term_is_zero_on_the_reference_heading_and_two_facing_away():
     np.testing.assert_allclose(_heading_penalty({"true_reference": ref, "follower_pose": pose}, 3), [0, 1, 2],
                                atol=1e-12)
     np.testing.assert_array_equal(_heading_penalty({}, 2), [0.0, 0.0])
+
+
+# --- speed without changing the maths ------------------------------------------------------------
+
+def test_tanh_layers_equal_torch_tanh_and_its_derivative():
+    """The actor's and critic's tanh (numpy's SIMD tanh) against the definition: values within a few
+    float32 ulps of torch.tanh, and the gradient of sum(w * tanh(x)) is w (1 - tanh(x)^2), checked
+    in float64 against math.tanh on a grid that covers saturation."""
+    import math
+
+    import torch
+
+    from agents.training.batched_ppo import _numpy_tanh_module
+
+    layer = _numpy_tanh_module()()
+    x = torch.linspace(-20.0, 20.0, 4001, dtype=torch.float32).reshape(1, -1).repeat(3, 1)
+    x.requires_grad_(True)
+    y = layer(x)
+    ref = torch.tensor([math.tanh(v) for v in x[0].tolist()], dtype=torch.float64)
+    assert float((y[0].detach().double() - ref).abs().max()) <= 4 * 2.0 ** -24
+    w = torch.randn(3, 4001, generator=torch.Generator().manual_seed(1))
+    (w * y).sum().backward()
+    expect = w.double() * (1.0 - ref ** 2)
+    assert torch.allclose(x.grad.double(), expect, rtol=0.0, atol=1e-6)
+    with torch.no_grad():  # the rollout's path (no autograd) gives the same values
+        assert torch.equal(layer(x.detach()), y.detach())
+
+
+def test_run_records_where_its_wall_clock_went(tmp_path):
+    """result.phase_seconds splits the training loop: every part >= 0 (other within timer noise)
+    and the parts add up to the loop's wall clock; a residual's base controller is timed apart."""
+    _tiny_bppo(tmp_path, "--mode", "residual", "--controller", "PROPOSED_KF_DOB", timesteps=256)
+    cfg = yaml.safe_load((tmp_path / "r" / "config.yaml").read_text())
+    ph = cfg["result"]["phase_seconds"]
+    assert set(ph) == {"physics", "filter_observer", "base_controller", "policy_forward", "update", "other"}
+    assert all(ph[k] > 0 for k in ("physics", "filter_observer", "base_controller", "policy_forward", "update"))
+    assert ph["other"] > -0.01
+    assert abs(sum(ph.values()) - cfg["result"]["wall_clock_s"]) < 0.02
+    assert cfg["threads"]["torch"] == 2
+

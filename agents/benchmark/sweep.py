@@ -169,7 +169,8 @@ def param_space(cfg: SweepConfig) -> dict[str, Any]:
         (kind, arg), = spec.items()
         space[k] = tune.choice(arg) if kind == "choice" else getattr(tune, kind)(*arg)
     space["_fixed"] = {"timesteps": cfg.timesteps, "chunks": cfg.chunks, "n_envs": cfg.n_envs,
-                       "validation_seeds": list(cfg.validation_seeds), "fail_once_marker": cfg.fail_once_marker}
+                       "validation_seeds": list(cfg.validation_seeds), "fail_once_marker": cfg.fail_once_marker,
+                       "cpus_per_trial": cfg.cpus_per_trial}
     return space
 
 
@@ -211,6 +212,8 @@ def run_trial(config: dict[str, Any]) -> None:
     tier = config.get("tier", "S4")
     _, env_id = resolve_tier(tier)
     hp = {k[3:]: v for k, v in config.items() if k.startswith("hp.")}
+    if config.get("algo", "ppo") == "bppo":  # torch's threads within the trial's share of the cores
+        hp.setdefault("torch_threads", max(1, int(fixed.get("cpus_per_trial", 1))))
     chunks, total = int(fixed["chunks"]), int(fixed["timesteps"])
     work = Path(tempfile.mkdtemp(prefix="auv-sweep-"))
     start_chunk, model, resumed_from = 0, None, -1

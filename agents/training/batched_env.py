@@ -24,6 +24,7 @@ the CPU of the serial one when we measured it).
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import gymnasium as gym
@@ -72,6 +73,7 @@ class BatchedTrainEnv:
         self.raw: np.ndarray | None = None
         self.last_action: np.ndarray | None = None
         self.info: dict[str, Any] = {}
+        self.physics_seconds = 0.0  #: wall-clock seconds in the vector env's step and reset (the kernel and the link)
 
     def reset(self) -> np.ndarray:
         raw, info = self.venv.reset(seed=self.seed)
@@ -92,6 +94,7 @@ class BatchedTrainEnv:
         ``info["episodes"]`` = (returns, lengths, episode_metrics dict) of those envs."""
         a = self.builder.act(actions)
         self.last_action = a  #: (N, 3) the env action of this step, in [-1, 1]
+        t0 = time.perf_counter()
         raw, rew, term, trunc, info = self.venv.step(np.ascontiguousarray(a))
         prev_done = self._done.copy()
         pend = self._pending
@@ -104,6 +107,7 @@ class BatchedTrainEnv:
             for key in ("true_reference", "follower_pose", "true_target"):
                 if key in rinfo:  # the reset's arrays hold every env's present values (the new episodes' first)
                     info[key] = rinfo[key]
+        self.physics_seconds += time.perf_counter() - t0
         start = prev_done
         self._len[start] = 0
         self._len[~start] += 1

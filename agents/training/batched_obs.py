@@ -33,6 +33,7 @@ Before the first fix of an episode (``est_valid`` = 0) the estimate fields are 0
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -211,6 +212,8 @@ class ObservationBuilder:
         self.base_forces: np.ndarray | None = None  #: (N, 3) float64, the base's command [N, N, N m]
         self.last_estimate: Any = None  #: the TargetEstimate behind the last estimator block
         self.last_d_hat: np.ndarray | None = None
+        #: wall-clock seconds spent in :meth:`observe` ("observe", everything) and in its base controller ("base")
+        self.timing: dict[str, float] = {"observe": 0.0, "base": 0.0}
 
     @property
     def config(self) -> dict[str, Any]:
@@ -226,6 +229,12 @@ class ObservationBuilder:
 
     def observe(self, raw: Any, start: Any = None) -> np.ndarray:
         """The agent's observation (N, D) float32 for raw env observations (N, W)."""
+        t0 = time.perf_counter()
+        out = self._observe(raw, start)
+        self.timing["observe"] += time.perf_counter() - t0
+        return out
+
+    def _observe(self, raw: Any, start: Any) -> np.ndarray:
         obs = np.asarray(raw)
         if obs.ndim != 2 or obs.shape[1] != self.obs_width:
             raise ValueError(f"raw observation has shape {obs.shape}: expected (N, {self.obs_width})")
@@ -247,7 +256,9 @@ class ObservationBuilder:
             if self.observation == "estimator" and self.base_estimator is not None:
                 # a peek at exactly what the base commits below (same bits and mask), with the covariance
                 est = self.base_estimator.step(obs64, start, commit=False, with_cov=True)
+            tb = time.perf_counter()
             self.base_action, _ = self.base.predict(obs64, episode_start=start)
+            self.timing["base"] += time.perf_counter() - tb
             self.base_forces = np.asarray(self.base.last_forces, dtype=np.float64)
             if self.include_base_action:
                 parts.append(self.base_action.astype(np.float32))

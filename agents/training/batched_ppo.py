@@ -78,9 +78,14 @@ NaN or infinite one training stops, no ``model.zip`` is written (checkpoints fro
 ``config.yaml`` records ``result.failed`` and :func:`agents.training.train` raises
 :class:`agents.training.TrainingFailed` (``auv-follow train``: one line, exit code 1).
 
-**Threads.** The env steps on numba's serial kernel (``parallel=False``) and torch uses
-``torch_threads`` threads (default 1): training is a serial loop of env step, base
-controller, policy forward, so two thread pools would only fight for the same cores.
+**Threads and speed.** The env steps on numba's serial kernel (``parallel=False``) and torch
+uses ``torch_threads`` threads (default 2, the cores of the machines we measure on; set 1 when
+several trainings share the cores, as ``auv-follow sweep`` does per CPU of a trial). The profile
+(``python -m experiments.bench_train``, which reports the split from ``result.phase_seconds`` in
+``config.yaml``) put two thirds of the wall clock in the PPO update and 3 % in the physics, so
+the update is where the cores go: torch's threads split its matrix products, and the ``tanh``
+layers use numpy's SIMD ``tanh`` (torch 2.13's CPU ``tanh`` took a third of an update on its
+own). Each epoch gathers its shuffled samples once; the minibatches are slices of it.
 
 **Run directory** (the contract of :mod:`agents.training`): ``config.yaml`` (with ``steps_done``
 and ``train_seconds``, refreshed at every checkpoint and evaluation), ``model.zip`` (a torch
@@ -126,7 +131,7 @@ class BatchedPPO:
     def __init__(self, policy: str = "MlpPolicy", n_steps: int = 32, batch_size: int = 4096, n_epochs: int = 5,
                  gamma: float = 0.995, gae_lambda: float = 0.95, learning_rate: float = 3e-4,
                  clip_range: float = 0.2, ent_coef: float = 0.0, vf_coef: float = 0.5, max_grad_norm: float = 0.5,
-                 target_kl: float | None = None, policy_kwargs: dict | None = None, torch_threads: int = 1,
+                 target_kl: float | None = None, policy_kwargs: dict | None = None, torch_threads: int = 2,
                  random_phase: bool = True, n_eval_seeds: int = 32, lr_schedule: str = "linear",
                  obs_norm_window: int = 1_000_000, reward_norm_window: int = 1_000_000, teacher: str | None = None,
                  teacher_link: str = "perfect", distill_steps: int = 0, action_rate_coef: float = 0.0,
@@ -306,11 +311,46 @@ def _check_teacher(hp: dict[str, Any], mode: str | None = None, env_id: str | No
 
 # --- the network ------------------------------------------------------------------------------
 
+def _numpy_tanh_module():
+    """``nn.Tanh`` computed by numpy's SIMD ``tanh`` (forward and backward, float32): torch
+    2.13's CPU ``tanh`` runs at about 2 ns per element here (550 us for a 4096 x 64
+    minibatch, a third of a PPO update) against 0.17 ns for numpy's; the values agree within
+    a float32 ulp or two (a test checks them and the gradient against ``torch.tanh``)."""
+    import torch
+    from torch import nn
+
+    class _Fn(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, x):
+            y = torch.from_numpy(np.tanh(x.detach().contiguous().numpy()))
+            ctx.save_for_backward(y)
+            return y
+
+        @staticmethod
+        def backward(ctx, g):
+            (y,) = ctx.saved_tensors
+            yn = y.numpy()
+            out = np.multiply(yn, yn)
+            np.subtract(1.0, out, out=out)
+            np.multiply(out, g.contiguous().numpy(), out=out)
+            return torch.from_numpy(out)
+
+    class NumpyTanh(nn.Module):
+        def forward(self, x):
+            if x.dtype != torch.float32:
+                return torch.tanh(x)
+            if torch.is_grad_enabled() and x.requires_grad:
+                return _Fn.apply(x)
+            return torch.from_numpy(np.tanh(x.detach().contiguous().numpy()))
+
+    return NumpyTanh
+
+
 def _build_net(obs_dim: int, pk: dict[str, Any]):
     import torch
     from torch import nn
 
-    act = {"tanh": nn.Tanh, "relu": nn.ReLU}[pk["activation"]]
+    act = {"tanh": _numpy_tanh_module(), "relu": nn.ReLU}[pk["activation"]]
 
     def mlp(n_in: int, sizes: list[int], n_out: int, out_gain: float):
         layers, last = [], n_in
@@ -548,6 +588,18 @@ def _check_finite_parameters(net: Any, steps: int) -> None:
                             "steps")
 
 
+def _phase_seconds(env: Any, phase: dict[str, float], elapsed: float) -> dict[str, float]:
+    """Where the training loop's wall clock went (seconds): the vector env (physics and link), the
+    agent's filter and observer, the residual's base controller, the policy's forward pass in the
+    rollouts, the PPO update (GAE included), and the rest (normalisation, rewards, bookkeeping,
+    evaluations, checkpoints)."""
+    b = env.builder.timing
+    parts = {"physics": env.physics_seconds, "filter_observer": b["observe"] - b["base"],
+             "base_controller": b["base"], "policy_forward": phase["policy_forward"], "update": phase["update"]}
+    parts["other"] = elapsed - sum(parts.values())
+    return {k: round(float(v), 3) for k, v in parts.items()}
+
+
 def _heading_penalty(info: dict[str, Any], n: int) -> np.ndarray:
     """1 - cos(psi_ref - psi) per env (0 when the follower holds the reference heading, 2 when it
     faces the opposite way), from the env's true present reference and the follower's pose
@@ -711,6 +763,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     ep_returns: list[float] = []
     ep_errors: list[float] = []
     df_sum, df_n = np.zeros(3), 0  # |dF| per step [N, N, N m] over the valid transitions of an update
+    phase = {"policy_forward": 0.0, "update": 0.0}  # wall-clock seconds of the trainer's own phases
     if eval_freq and start_steps == 0:
         last_eval = evaluate_now(0, 0.0)
     try:
@@ -735,6 +788,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                 for t in range(T):
                     o = normalize(raw_obs, update=True)
                     buf_obs[t], buf_first[t] = o, first
+                    tp = time.perf_counter()
                     ot = torch.from_numpy(o)
                     x, h = net.trunk(ot, h, torch.from_numpy(first))
                     pv = None
@@ -746,6 +800,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                     a = mean + std * torch.randn_like(mean)
                     logp = (-0.5 * ((a - mean) / std) ** 2 - torch.log(std) - 0.5 * math.log(2 * math.pi)).sum(-1)
                     buf_act[t], buf_logp[t], buf_val[t] = a.numpy(), logp.numpy(), value.numpy()
+                    phase["policy_forward"] += time.perf_counter() - tp
                     if not np.isfinite(buf_act[t]).all():
                         raise _Diverged(f"the policy's actions are not finite (NaN or inf) at {steps:,} steps")
                     act = a.numpy().astype(np.float64)
@@ -785,6 +840,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                 _, last_v = net.heads(x, torch.from_numpy(priv) if net.priv else None)
                 buf_val[T] = last_v.numpy()
             steps += T * n_envs
+            tu = time.perf_counter()
             # GAE; a transition out of an episode's last observation (not valid) is a dummy
             adv = np.zeros((T, n_envs), dtype=np.float32)
             last = np.zeros(n_envs, dtype=np.float32)
@@ -803,6 +859,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                 stats = _update(net, opt, hp, buf_obs, buf_priv, buf_first, buf_act, buf_logp, adv, ret, buf_valid,
                                 h0, log_std_min)
             _check_finite_parameters(net, steps)
+            phase["update"] += time.perf_counter() - tu
             elapsed = time.perf_counter() - t0
             progress.update(steps)
             row = {"steps": steps, "train_seconds": round(elapsed, 2),
@@ -844,7 +901,8 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     if diverged is None:
         save(run / "model.zip", run / "vecnormalize.json", steps)
     result = {"num_timesteps": steps, "start_timesteps": start_steps, "wall_clock_s": round(elapsed, 2),
-              "steps_per_s": round((steps - start_steps) / max(elapsed, 1e-9), 1), "interrupted": interrupted}
+              "steps_per_s": round((steps - start_steps) / max(elapsed, 1e-9), 1), "interrupted": interrupted,
+              "phase_seconds": _phase_seconds(env, phase, elapsed)}
     if diverged is not None:
         result["failed"] = f"training diverged: {diverged}"
         return result, interrupted
@@ -971,10 +1029,12 @@ def _update(net: Any, opt: Any, hp: dict, obs, priv, first, act, logp_old, adv, 
             envs_per_mb = max(1, batch // T)
             perm = torch.randperm(N)
             groups = [perm[i:i + envs_per_mb] for i in range(0, N, envs_per_mb)]
-        else:
+        else:  # one gather per epoch of the shuffled valid samples; the minibatches are slices of it
             idx = torch.nonzero(v_t.reshape(-1)).squeeze(-1)
             idx = idx[torch.randperm(idx.numel())]
-            groups = [idx[i:i + batch] for i in range(0, idx.numel(), batch)]
+            shuffled = [None if z is None else z.reshape(T * N, *z.shape[2:]).index_select(0, idx)
+                        for z in (o_t, a_t, lp_t, adv_t, ret_t, p_t)]
+            groups = [slice(i, i + batch) for i in range(0, idx.numel(), batch)]
         for g in groups:
             if net.recurrent:
                 h = h0[g]
@@ -987,10 +1047,8 @@ def _update(net: Any, opt: Any, hp: dict, obs, priv, first, act, logp_old, adv, 
                 x, a, lp, ad, rt = x[m], a_t[:, g][m], lp_t[:, g][m], adv_t[:, g][m], ret_t[:, g][m]
                 pv = p_t[:, g][m] if p_t is not None else None
             else:
-                t_i, n_i = g // N, g % N
-                x, _ = net.trunk(o_t[t_i, n_i], None, None)
-                a, lp, ad, rt = a_t[t_i, n_i], lp_t[t_i, n_i], adv_t[t_i, n_i], ret_t[t_i, n_i]
-                pv = p_t[t_i, n_i] if p_t is not None else None
+                o, a, lp, ad, rt, pv = (None if z is None else z[g] for z in shuffled)
+                x, _ = net.trunk(o, None, None)
             if ad.numel() < 2:
                 continue
             mean, value = net.heads(x, pv)

@@ -347,7 +347,7 @@ def _train_batched(cfg: TrainConfig, plan: _Plan, return_model: bool):
                                 for k, v in plan.hp.items()},
                 "normalize": plan.norm_kw, "residual": plan.residual, "observation": builder,
                 "threads": {"env_kernel": "numba serial (parallel=False)",
-                            "torch": int(plan.hp.get("torch_threads", 1))},
+                            "torch": int(plan.hp.get("torch_threads", 2 if cfg.algo == "bppo" else 1))},
                 "versions": versions(), "steps_done": 0, "train_seconds": 0.0}
     try:
         run.mkdir(parents=True, exist_ok=True)
