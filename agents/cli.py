@@ -276,7 +276,7 @@ def _train(args: argparse.Namespace) -> None:
     kw["env_kwargs"] = dict(kw["env_kwargs"])
     kw["hyperparams"] = dict(kw["hyperparams"])
     _check_writable(Path(kw["out_dir"]), "--out", want_dir=True)  # before any work, as for the other commands
-    tier = auv_follow_env.TIERS.get(kw["env_id"].split("-")[1]) if kw["env_id"].count("-") == 2 else None
+    tier = auv_follow_env.ALL_TIERS.get(kw["env_id"][len("AUVFollow-"):].rsplit("-", 1)[0])
     if tier is not None and tier.out_of_distribution:
         print(f"auv-follow train: warning: {kw['env_id']} is for out-of-distribution testing only; train on "
               "Easy/Medium/Hard and score on it", file=sys.stderr)
@@ -406,7 +406,8 @@ def _add_benchmark_commands(sub: Any) -> None:
                         "directories, directories of runs, label=run,run, or [label=]module:Class (your own "
                         "controller); NAME@Tier scores it on that tier only (default: classical)")
     b.add_argument("--tiers", nargs="+", default=["S4"], metavar="TIER",
-                   help="S1..S4 (paper scenarios) and/or Easy, Medium, Hard, Extreme (v1 tiers)")
+                   help="S1..S4 (paper scenarios) and/or Easy, Medium, Hard, Extreme (v1 tiers), Leader-Easy, "
+                        "Leader-Medium, Leader-Hard (targets with manoeuvre modes)")
     b.add_argument("--seeds", type=_seeds, default=None,
                    help="override the published test seeds (quick looks only), e.g. 3000000-3000009 "
                         "(default: each tier's 100 published test seeds)")

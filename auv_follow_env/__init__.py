@@ -19,9 +19,10 @@ and does nothing else.
 from gymnasium.envs.registration import register, registry
 
 from auv_follow_env.params import SCENARIOS, make_config, make_task_spec
-from auv_follow_env.tiers import TIERS, check_training_seeds
+from auv_follow_env.tiers import ALL_TIERS, LEADER_TIERS, TIERS, check_training_seeds
 
-__all__ = ["ENV_IDS", "ENV_IDS_V1", "TIERS", "check_training_seeds", "make_config", "make_task_spec"]
+__all__ = ["ENV_IDS", "ENV_IDS_V1", "ENV_IDS_LEADER", "TIERS", "LEADER_TIERS", "ALL_TIERS", "check_training_seeds",
+           "make_config", "make_task_spec"]
 __version__ = "0.1.0"
 
 _ENTRY = "auv_follow_env.env:AUVFollowEnv"
@@ -29,6 +30,8 @@ _VECTOR_ENTRY = "auv_follow_env.vector_env:AUVFollowVectorEnv"
 
 ENV_IDS: tuple[str, ...] = tuple(f"AUVFollow-{s}-v0" for s in SCENARIOS) + ("AUVFollow-v0",)
 ENV_IDS_V1: tuple[str, ...] = tuple(t.env_id for t in TIERS.values()) + ("AUVFollow-v1",)
+#: the Leader tiers' ids (targets with hidden manoeuvre modes and outlier fixes)
+ENV_IDS_LEADER: tuple[str, ...] = tuple(t.env_id for t in LEADER_TIERS.values())
 
 for _name in SCENARIOS:
     if f"AUVFollow-{_name}-v0" not in registry:
@@ -37,7 +40,7 @@ for _name in SCENARIOS:
 if "AUVFollow-v0" not in registry:
     register(id="AUVFollow-v0", entry_point=_ENTRY,
              vector_entry_point=_VECTOR_ENTRY)
-for _tier in TIERS.values():
+for _tier in ALL_TIERS.values():
     if _tier.env_id not in registry:
         register(id=_tier.env_id, entry_point=_ENTRY, vector_entry_point=_VECTOR_ENTRY,
                  kwargs={"version": "v1", "tier": _tier.name})

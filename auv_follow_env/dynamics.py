@@ -82,7 +82,18 @@ P_LOSS, P_GB, P_BG, P_LOSS_BAD = 55, 56, 57, 58  # i.i.d. loss prob., Gilbert-El
 #   p(good->bad), p(bad->good) per packet, loss prob. in the bad state
 P_NS0, P_NSK, P_NPSI, P_NVEL, P_NYAW = 59, 60, 61, 62, 63  # fix noise: position sigma =
 #   NS0 [m] + NSK [-] * range, heading [rad], velocity [m/s], yaw rate [rad/s]
-NP = 64
+# leader targets (zero in v0 and the v1 tiers: P_LD_MODES = 0 switches the leader off, nothing drawn)
+P_LD_MODES, P_LD_SURVEY = 64, 65  # 1: cruise / turn modes, 2: also loiter / sprint; share of survey episodes
+P_LD_UC, P_LD_RT, P_LD_MC, P_LD_MT = 66, 67, 68, 69  # cruise speed [m/s], turn rate [rad/s], mean cruise
+#   and turn durations [s]
+P_LD_UL, P_LD_ML, P_LD_US, P_LD_MS = 70, 71, 72, 73  # loiter speed, mean duration; sprint speed, mean duration
+P_LD_LEG, P_LD_RS = 74, 75  # survey leg length [m], U-turn rate [rad/s]
+P_LD_AU, P_LD_AR = 76, 77  # per-step decay of the speed and turn-rate lags exp(-dt / T) [-]
+P_LD_WU, P_LD_WR, P_LD_WA = 78, 79, 80  # wobble std of speed [m/s] and turn rate [rad/s], per-step decay
+P_LD_TR = 81  # the turn-rate lag's time constant [s] (a U-turn's command ends pi - omega T_r early)
+P_OUT_P, P_OUT_S = 82, 83  # share of fixes that are multipath outliers, scale of their Student-t error [m]
+P_LD_DT = 84  # the control step [s] (the leader's progress in time)
+NP = 85
 #: latency models (P_LAT_KIND)
 LAT_CONSTANT, LAT_UNIFORM, LAT_GAUSS_MARKOV = 0, 1, 2
 #: disturbance tone frequencies [rad/s] (ours, docs/paper_notes.md) and weights (sum to 1)
@@ -121,7 +132,16 @@ R_TS, R_TC = 36, 46  # tone sines (36-45) and cosines (46-55) at t = R_TK * dt
 R_PSK, R_PSC, R_PSS = 56, 57, 58  # follower heading, its cos, its sin
 R_PTK, R_PTC, R_PTS = 59, 60, 61  # target heading, its cos, its sin
 R_HC, R_HS = 62, 63  # cos/sin of the held packet's heading
-NR = 64
+# leader targets: the hidden mode (LD_* below), the U-turn side (+-1), the progress in the mode (s,
+# m or rad) and the threshold at which it ends, the lagged speed and turn-rate commands and the wobbles
+R_LD_MODE, R_LD_SIDE, R_LD_PROG, R_LD_THR = 64, 65, 66, 67
+R_LD_UB, R_LD_RB, R_LD_WU, R_LD_WR = 68, 69, 70, 71
+NR = 72
+#: the leader's modes
+LD_CRUISE, LD_TURN_L, LD_TURN_R, LD_LOITER, LD_SPRINT, LD_LEG, LD_UTURN = 0, 1, 2, 3, 4, 5, 6
+LD_K = 4.0  #: Gamma shape of the wander modes' durations (coefficient of variation 1 / sqrt(4) = 0.5)
+LD_LEG_JITTER = 0.05  #: a survey leg's length is the episode's leg length times 1 + U(-0.05, 0.05)
+OUTLIER_DOF = 3.0  #: degrees of freedom of the outlier fixes' 2-D Student-t position error
 Q_MEAS, Q_ARR, Q_X = 0, 1, 2  # queue entry: measurement step, arrival step, state at 2-7
 Q_C, Q_S = 8, 9  # cos/sin of the measured heading
 NQ = 10
@@ -774,6 +794,8 @@ def _gm(x, a, std, rs, proc, i):
 @njit(cache=True, inline="always")
 def update_processes(proc, rs, p, i):
     """Advance env i's random processes by one control step (draws only where a std > 0)."""
+    if p[i, P_LD_MODES] > 0.0:
+        leader_step(proc, rs, p, i, p[i, P_LD_DT])
     if p[i, P_OUU_STD] > 0.0:
         proc[i, R_OUU] = _gm(proc[i, R_OUU], p[i, P_OUU_A], p[i, P_OUU_STD], rs, proc, i)
     if p[i, P_OUR_STD] > 0.0:
@@ -790,6 +812,189 @@ def update_processes(proc, rs, p, i):
     for c in range(3):
         if p[i, P_DN + c] > 0.0:
             proc[i, R_DN + c] = _gm(proc[i, R_DN + c], p[i, P_DN_A], p[i, P_DN + c], rs, proc, i)
+
+
+# --- leader targets: hidden semi-Markov modes (docs/tiers.md, "Leader tiers") ----------------------
+# A wandering leader cruises, turns left or right, (modes 2) loiters or sprints; a surveying one
+# runs legs of similar length joined by U-turns, alternately left and right. Each mode's command
+# (speed, turn rate) is followed through first-order lags, plus small OU wobbles; the results are
+# the target's surge speed and turn rate held over the next step (rows R_OUU, R_OUR, which the
+# target's velocity adds to its tones: zero on a leader tier). A mode ends when its progress
+# (time; distance along a leg; heading turned in a U-turn) reaches a threshold drawn when it
+# began: a Gamma(LD_K) duration about the mode's mean, a leg's length, or pi minus the heading
+# the rate lag still adds after the command drops.
+
+@njit(cache=True, **INTERNAL)
+def _ld_uniform_pos(rs, i):
+    """A uniform in (0, 1] (for logarithms)."""
+    return 1.0 - uniform01(rs, i)
+
+
+@njit(cache=True, **INTERNAL)
+def _ld_gamma(rs, i, k):
+    """A standard Gamma(k) deviate for a whole k (the sum of k standard exponentials)."""
+    prod = 1.0
+    for _ in range(int(k)):
+        prod *= _ld_uniform_pos(rs, i)
+    return -math.log(prod)
+
+
+@njit(cache=True, inline="always")
+def _ld_mean(p, i, mode):
+    """Mean duration [s] of wander mode ``mode``."""
+    if mode == LD_CRUISE:
+        return p[i, P_LD_MC]
+    if mode == LD_LOITER:
+        return p[i, P_LD_ML]
+    if mode == LD_SPRINT:
+        return p[i, P_LD_MS]
+    return p[i, P_LD_MT]
+
+
+@njit(cache=True, **INTERNAL)
+def _ld_threshold(rs, p, i, mode, shape):
+    """The progress at which a new mode ``mode`` ends (``shape``: the Gamma shape of a wander
+    duration, LD_K for a new mode, LD_K + 1 for the length-biased mode at an episode's start)."""
+    if mode == LD_LEG:
+        return p[i, P_LD_LEG] * (1.0 + LD_LEG_JITTER * (2.0 * uniform01(rs, i) - 1.0))
+    if mode == LD_UTURN:
+        return math.pi - p[i, P_LD_RS] * p[i, P_LD_TR]
+    return _ld_gamma(rs, i, shape) * _ld_mean(p, i, mode) / LD_K
+
+
+@njit(cache=True, inline="always")
+def _ld_commands(proc, p, i):
+    """The (speed [m/s], turn rate [rad/s]) command of env i's present mode."""
+    mode = proc[i, R_LD_MODE]
+    u = p[i, P_LD_UC]
+    if mode == LD_LOITER:
+        u = p[i, P_LD_UL]
+    elif mode == LD_SPRINT:
+        u = p[i, P_LD_US]
+    r = 0.0
+    if mode == LD_TURN_L:
+        r = p[i, P_LD_RT]
+    elif mode == LD_TURN_R:
+        r = -p[i, P_LD_RT]
+    elif mode == LD_UTURN:
+        r = p[i, P_LD_RS] * proc[i, R_LD_SIDE]
+    return u, r
+
+
+@njit(cache=True, **INTERNAL)
+def _ld_next_mode(rs, p, i, mode):
+    """The mode after ``mode`` (the semi-Markov chain's jump; one uniform drawn in wander modes)."""
+    if mode == LD_LEG:
+        return LD_UTURN
+    if mode == LD_UTURN:
+        return LD_LEG
+    if mode != LD_CRUISE:
+        return LD_CRUISE
+    u = uniform01(rs, i)
+    if p[i, P_LD_MODES] >= 2.0:  # left 0.3, right 0.3, loiter 0.2, sprint 0.2
+        if u < 0.3:
+            return LD_TURN_L
+        if u < 0.6:
+            return LD_TURN_R
+        return LD_LOITER if u < 0.8 else LD_SPRINT
+    return LD_TURN_L if u < 0.5 else LD_TURN_R
+
+
+@njit(cache=True, **INTERNAL)
+def leader_init(proc, rs, p, i):
+    """A stationary start of env i's leader (draws: survey or wander, the mode by its share of
+    time, the length-biased first threshold and the progress made in it, the U-turn side, the
+    wobbles); the lags start at the mode's command."""
+    survey = uniform01(rs, i) < p[i, P_LD_SURVEY]
+    if survey:
+        t_leg = p[i, P_LD_LEG] / p[i, P_LD_UC]
+        t_turn = math.pi / p[i, P_LD_RS]
+        mode = LD_LEG if uniform01(rs, i) < t_leg / (t_leg + t_turn) else LD_UTURN
+    else:
+        # visits: cruise half of them, the rest split as the chain leaves cruise; weighted by mean duration
+        speed = p[i, P_LD_MODES] >= 2.0
+        w_turn = (0.15 if speed else 0.25) * p[i, P_LD_MT]
+        w_l = (0.1 * p[i, P_LD_ML]) if speed else 0.0
+        w_s = (0.1 * p[i, P_LD_MS]) if speed else 0.0
+        w_c = 0.5 * p[i, P_LD_MC]
+        u = uniform01(rs, i) * (w_c + 2.0 * w_turn + w_l + w_s)
+        if u < w_c:
+            mode = LD_CRUISE
+        elif u < w_c + w_turn:
+            mode = LD_TURN_L
+        elif u < w_c + 2.0 * w_turn:
+            mode = LD_TURN_R
+        elif u < w_c + 2.0 * w_turn + w_l:
+            mode = LD_LOITER
+        else:
+            mode = LD_SPRINT
+    proc[i, R_LD_MODE] = mode
+    thr = _ld_threshold(rs, p, i, mode, LD_K + 1.0)
+    proc[i, R_LD_THR] = thr
+    proc[i, R_LD_PROG] = uniform01(rs, i) * thr
+    proc[i, R_LD_SIDE] = -1.0 if uniform01(rs, i) < 0.5 else 1.0
+    ub, rb = _ld_commands(proc, p, i)
+    proc[i, R_LD_UB] = ub
+    proc[i, R_LD_RB] = rb
+    proc[i, R_LD_WU] = p[i, P_LD_WU] * normal01(rs, proc, i)
+    proc[i, R_LD_WR] = p[i, P_LD_WR] * normal01(rs, proc, i)
+    proc[i, R_OUU] = max(ub + proc[i, R_LD_WU], 0.0)
+    proc[i, R_OUR] = rb + proc[i, R_LD_WR]
+
+
+@njit(cache=True, **INTERNAL)
+def leader_step(proc, rs, p, i, dt):
+    """Advance env i's leader by one control step: the progress made over the step just simulated
+    (with the speed and turn rate it held), a mode switch if the threshold is reached, then the
+    lags and wobbles, whose result is held over the next step."""
+    mode = proc[i, R_LD_MODE]
+    if mode == LD_LEG:
+        proc[i, R_LD_PROG] += dt * proc[i, R_OUU]
+    elif mode == LD_UTURN:
+        proc[i, R_LD_PROG] += dt * abs(proc[i, R_OUR])
+    else:
+        proc[i, R_LD_PROG] += dt
+    if proc[i, R_LD_PROG] >= proc[i, R_LD_THR]:
+        new = _ld_next_mode(rs, p, i, mode)
+        if mode == LD_UTURN:
+            proc[i, R_LD_SIDE] = -proc[i, R_LD_SIDE]
+        proc[i, R_LD_MODE] = new
+        proc[i, R_LD_PROG] = 0.0
+        proc[i, R_LD_THR] = _ld_threshold(rs, p, i, new, LD_K)
+    uc, rc = _ld_commands(proc, p, i)
+    proc[i, R_LD_UB] += (uc - proc[i, R_LD_UB]) * (1.0 - p[i, P_LD_AU])
+    proc[i, R_LD_RB] += (rc - proc[i, R_LD_RB]) * (1.0 - p[i, P_LD_AR])
+    a = p[i, P_LD_WA]
+    proc[i, R_LD_WU] = _gm(proc[i, R_LD_WU], a, p[i, P_LD_WU], rs, proc, i)
+    proc[i, R_LD_WR] = _gm(proc[i, R_LD_WR], a, p[i, P_LD_WR], rs, proc, i)
+    proc[i, R_OUU] = max(proc[i, R_LD_UB] + proc[i, R_LD_WU], 0.0)
+    proc[i, R_OUR] = proc[i, R_LD_RB] + proc[i, R_LD_WR]
+
+
+@njit(cache=True)
+def leader_trace(p, seeds, steps):
+    """The leader process alone (no physics, no link), for the tests and the docs: env i's
+    generator seeded with ``seeds[i]``, :func:`leader_init`, then ``steps`` control steps of
+    :func:`update_processes`. Returns (steps + 1, N, 4): mode, progress, speed held [m/s], turn
+    rate held [rad/s] after the start and after each step."""
+    n = p.shape[0]
+    proc = np.zeros((n, NR))
+    rs = np.empty(n, dtype=np.uint64)
+    out = np.empty((steps + 1, n, 4))
+    for i in range(n):
+        rs[i] = np.uint64(seeds[i])
+        leader_init(proc, rs, p, i)
+        out[0, i, 0] = proc[i, R_LD_MODE]
+        out[0, i, 1] = proc[i, R_LD_PROG]
+        out[0, i, 2] = proc[i, R_OUU]
+        out[0, i, 3] = proc[i, R_OUR]
+        for k in range(steps):
+            update_processes(proc, rs, p, i)
+            out[k + 1, i, 0] = proc[i, R_LD_MODE]
+            out[k + 1, i, 1] = proc[i, R_LD_PROG]
+            out[k + 1, i, 2] = proc[i, R_OUU]
+            out[k + 1, i, 3] = proc[i, R_OUR]
+    return out
 
 
 # --- the random processes of a block of envs at once -------------------------------------------
@@ -901,7 +1106,12 @@ def _normal_at(wk, b, j):
 def update_processes_block(proc, rs, p, m, wk, fast):
     """:func:`update_processes` for the envs of lanes 0..m-1 (env indices in row K_ENV; the same
     draws and updates per env; see the comment above K_U1): per env its uniforms, then the
-    block's logarithms and sines/cosines in SIMD loops, then per env its updates."""
+    block's logarithms and sines/cosines in SIMD loops, then per env its updates. A leader
+    target (P_LD_MODES > 0) advances first (:func:`leader_step`, its own draws)."""
+    for b in range(m):
+        i = int(wk[_ix(K_ENV, b)])
+        if p[i, P_LD_MODES] > 0.0:
+            leader_step(proc, rs, p, i, p[i, P_LD_DT])
     npair_max = 0
     for b in range(m):
         i = int(wk[_ix(K_ENV, b)])
@@ -1058,6 +1268,8 @@ def _init_processes(proc, rs, p, i, direction):
     for c in range(3):
         if p[i, P_DN + c] > 0.0:
             proc[i, R_DN + c] = p[i, P_DN + c] * normal01(rs, proc, i)
+    if p[i, P_LD_MODES] > 0.0:
+        leader_init(proc, rs, p, i)
 
 
 @njit(cache=True, inline="always")
@@ -1084,6 +1296,17 @@ def _send(state, proc, queue, rs, p, cfg, i, step):
         sig = s0 + sk * math.sqrt((xt - state[i, 0]) ** 2 + (yt - state[i, 1]) ** 2)
         xt += sig * normal01(rs, proc, i)
         yt += sig * normal01(rs, proc, i)
+    if p[i, P_OUT_P] > 0.0 and uniform01(rs, i) < p[i, P_OUT_P]:
+        # a multipath outlier: a 2-D Student-t position error (OUTLIER_DOF dof, scale P_OUT_S) on top
+        z1 = normal01(rs, proc, i)
+        z2 = normal01(rs, proc, i)
+        chi2 = 0.0
+        for _ in range(int(OUTLIER_DOF)):
+            z = normal01(rs, proc, i)
+            chi2 += z * z
+        sc = p[i, P_OUT_S] * math.sqrt(OUTLIER_DOF / max(chi2, 1e-300))
+        xt += sc * z1
+        yt += sc * z2
     if p[i, P_NPSI] > 0.0:
         pt += p[i, P_NPSI] * normal01(rs, proc, i)
     if p[i, P_NVEL] > 0.0:

@@ -502,6 +502,34 @@ CONDITION_FIELDS: tuple[ConditionField, ...] = (
     ConditionField("target_speed_min", 0.0, 0.0, 5.0, "m/s", "surge speed is clipped to [min, max]"),
     ConditionField("target_speed_max", 2.0, 0.0, 5.0, "m/s", "upper surge-speed bound", lo_open=True),
     ConditionField("target_yaw_rate_max", 0.5, 0.0, 5.0, "rad/s", "|r_t| is clipped to this", lo_open=True),
+    # leader targets: hidden manoeuvre modes instead of the OU deviations (docs/tiers.md, "Leader tiers")
+    ConditionField("leader_modes", 0.0, 0.0, 2.0, "-",
+                   "0: the target above (tones + OU); 1: a leader with cruise and turn modes; 2: also loiter "
+                   "and sprint"),
+    ConditionField("leader_survey_share", 0.0, 0.0, 1.0, "-",
+                   "share of a leader's episodes that are surveys (legs and U-turns) instead of wandering"),
+    ConditionField("leader_cruise_speed", 0.5, 0.0, 5.0, "m/s", "speed commanded in cruise, turns and survey legs",
+                   lo_open=True),
+    ConditionField("leader_turn_rate", 0.15, 0.0, 2.0, "rad/s", "turn rate of a wandering turn"),
+    ConditionField("leader_cruise_mean_s", 10.0, 0.0, 1e4, "s", "mean duration of cruise (Gamma(4) durations)",
+                   lo_open=True),
+    ConditionField("leader_turn_mean_s", 6.0, 0.0, 1e4, "s", "mean duration of a turn", lo_open=True),
+    ConditionField("leader_loiter_speed", 0.1, 0.0, 5.0, "m/s", "speed commanded while loitering"),
+    ConditionField("leader_loiter_mean_s", 8.0, 0.0, 1e4, "s", "mean duration of a loiter", lo_open=True),
+    ConditionField("leader_sprint_speed", 0.9, 0.0, 5.0, "m/s", "speed commanded in a sprint"),
+    ConditionField("leader_sprint_mean_s", 5.0, 0.0, 1e4, "s", "mean duration of a sprint", lo_open=True),
+    ConditionField("leader_leg_m", 10.0, 0.0, 1e4, "m", "survey leg length (each leg within +- 5 %)",
+                   lo_open=True),
+    ConditionField("leader_uturn_rate", 0.25, 0.0, 2.0, "rad/s", "turn rate of a survey's U-turn", lo_open=True),
+    ConditionField("leader_speed_lag_s", 2.0, 0.0, 1e3, "s", "time constant of the speed's first-order lag",
+                   lo_open=True),
+    ConditionField("leader_rate_lag_s", 1.0, 0.0, 1e3, "s", "time constant of the turn rate's lag", lo_open=True),
+    ConditionField("leader_wobble_speed", 0.02, 0.0, 1.0, "m/s", "std of the OU wobble on the leader's speed"),
+    ConditionField("leader_wobble_rate", 0.01, 0.0, 1.0, "rad/s", "std of the OU wobble on its turn rate"),
+    ConditionField("leader_wobble_corr_s", 5.0, 0.0, 1e4, "s", "the wobbles' correlation time", lo_open=True),
+    ConditionField("outlier_share", 0.0, 0.0, 1.0, "-",
+                   "share of position fixes that are multipath outliers (a 2-D Student-t error, 3 dof)"),
+    ConditionField("outlier_scale_m", 1.0, 0.0, 100.0, "m", "scale of the outliers' Student-t error"),
     # current
     ConditionField("current_speed", 0.0, 0.0, 3.0, "m/s",
                    "mean speed of the Gauss-Markov current (added to the level's tones)"),
@@ -565,6 +593,25 @@ class Condition:
     target_speed_min: float = 0.0
     target_speed_max: float = 2.0
     target_yaw_rate_max: float = 0.5
+    leader_modes: float = 0.0
+    leader_survey_share: float = 0.0
+    leader_cruise_speed: float = 0.5
+    leader_turn_rate: float = 0.15
+    leader_cruise_mean_s: float = 10.0
+    leader_turn_mean_s: float = 6.0
+    leader_loiter_speed: float = 0.1
+    leader_loiter_mean_s: float = 8.0
+    leader_sprint_speed: float = 0.9
+    leader_sprint_mean_s: float = 5.0
+    leader_leg_m: float = 10.0
+    leader_uturn_rate: float = 0.25
+    leader_speed_lag_s: float = 2.0
+    leader_rate_lag_s: float = 1.0
+    leader_wobble_speed: float = 0.02
+    leader_wobble_rate: float = 0.01
+    leader_wobble_corr_s: float = 5.0
+    outlier_share: float = 0.0
+    outlier_scale_m: float = 1.0
     current_speed: float = 0.0
     current_speed_std: float = 0.0
     current_corr_s: float = 60.0
@@ -600,6 +647,21 @@ class Condition:
                  self.latency_spread_s, f"<= latency_s={self.latency_s} s for the uniform model (latency >= 0)")
         _require(self.target_speed_min <= self.target_speed_max, "target_speed_min", self.target_speed_min,
                  f"<= target_speed_max={self.target_speed_max} m/s")
+        _require(float(self.leader_modes).is_integer(), "leader_modes", self.leader_modes, "0, 1 or 2")
+        if self.leader_modes > 0:
+            for n in ("target_speed_std", "target_yaw_rate_std", "target_surge_amp", "target_yaw_rate_amp"):
+                _require(getattr(self, n) == 0.0, n, getattr(self, n),
+                         f"0 with leader_modes={self.leader_modes:g} (the leader's modes replace the tones and "
+                         "the OU deviations)")
+            fastest = max(self.leader_cruise_speed, self.leader_sprint_speed if self.leader_modes >= 2 else 0.0)
+            _require(self.target_speed_max >= fastest, "target_speed_max", self.target_speed_max,
+                     f">= the leader's fastest commanded speed {fastest:g} m/s")
+            sharpest = max(self.leader_turn_rate, self.leader_uturn_rate if self.leader_survey_share > 0 else 0.0)
+            _require(self.target_yaw_rate_max >= sharpest, "target_yaw_rate_max", self.target_yaw_rate_max,
+                     f">= the leader's sharpest commanded turn rate {sharpest:g} rad/s")
+            _require(self.leader_uturn_rate * self.leader_rate_lag_s < math.pi, "leader_uturn_rate",
+                     self.leader_uturn_rate, f"< pi / leader_rate_lag_s = {math.pi / self.leader_rate_lag_s:g} "
+                     "rad/s (a U-turn's command ends when pi - rate * lag remains)")
         for n in CURRENT_RANGE_FIELDS:
             r = getattr(self, n)
             if r is not None:
@@ -773,6 +835,8 @@ def make_config(scenario: str = "S4", disturbance: str | None = None, *, version
         (env_kw if k in OVERRIDES else cond_kw)[k] = v
     dt = float(env_kw.get("dt", 0.05))
     defaults = _condition_defaults(sc, dt, float(env_kw["delay_s"]))
+    if float(cond_kw.get("leader_modes", 0.0) or 0.0) > 0:  # a leader replaces the scenario's target tones
+        defaults.update(target_speed=0.0, target_surge_amp=0.0, target_yaw_rate_amp=0.0)
     for k, v in defaults.items():
         cond_kw.setdefault(k, v)
     if "warmup_s" not in cond_kw:

@@ -29,7 +29,8 @@ from types import MappingProxyType
 
 from auv_follow_env.params import CONDITION_INDEX, EnvConfig, make_config
 
-__all__ = ["Tier", "TIERS", "TIER_NAMES", "TRAIN_SEED_LIMIT", "check_training_seeds", "make_tier_config",
+__all__ = ["Tier", "TIERS", "LEADER_TIERS", "ALL_TIERS", "TIER_NAMES", "LEADER_TIER_NAMES",
+           "TRAIN_SEED_LIMIT", "check_training_seeds", "make_tier_config",
            "make_env_config", "tier_table_markdown", "tier_summary_markdown"]
 
 #: every published test seed is >= this; training seeds must be below it
@@ -125,7 +126,49 @@ TIERS: Mapping[str, Tier] = MappingProxyType({
             "target_speed_std": (0.10, 0.16), "target_yaw_rate_std": (0.08, 0.12),
             "current_speed": (0.10, 0.25), "mismatch": (1.00, 2.00)})),
 })
+
+#: the link fields a Leader tier takes from the v1 tier of its level (everything but the target's)
+_TARGET_FIELDS = ("target_speed", "target_speed_std", "target_yaw_rate_std", "target_speed_corr_s",
+                  "target_yaw_rate_corr_s", "target_yaw_rate_max")
+
+def _leader(level: str, k: int, description: str, fixed: dict, ranges: dict) -> Tier:
+    """A Leader tier: the link, current, disturbances and thrusters of the v1 tier ``level``, the
+    leader's modes instead of the OU target (docs/tiers.md, "Leader tiers")."""
+    base = _V1[level]
+    f = {n: v for n, v in base.fixed.items() if n not in _TARGET_FIELDS}
+    r = {n: v for n, v in base.ranges.items() if n not in _TARGET_FIELDS}
+    f.update({"target_speed": 0.0, "target_yaw_rate_max": 0.5, "leader_survey_share": 0.5, **fixed})
+    r.update({"leader_cruise_speed": (0.4, 0.6), **ranges})
+    return Tier(name=f"Leader-{level}", scenario=base.scenario, disturbance=base.disturbance, test_seeds=_seeds(k),
+                description=description, fixed=MappingProxyType(f), ranges=MappingProxyType(r))
+
+
+_V1 = TIERS
+LEADER_TIERS: Mapping[str, Tier] = MappingProxyType({
+    "Leader-Easy": _leader(
+        "Easy", 5, "Easy's link; a leader that cruises and turns, or surveys (legs of 10-20 m)",
+        {"leader_modes": 1.0},
+        {"leader_turn_rate": (0.05, 0.15), "leader_cruise_mean_s": (10.0, 20.0), "leader_turn_mean_s": (5.0, 10.0),
+         "leader_leg_m": (10.0, 20.0), "leader_uturn_rate": (0.15, 0.25)}),
+    "Leader-Medium": _leader(
+        "Medium", 6, "Medium's link; a leader that also loiters and sprints, or surveys; up to 5 % outlier fixes",
+        {"leader_modes": 2.0},
+        {"leader_turn_rate": (0.08, 0.20), "leader_cruise_mean_s": (8.0, 18.0), "leader_turn_mean_s": (4.0, 10.0),
+         "leader_leg_m": (8.0, 18.0), "leader_uturn_rate": (0.15, 0.30), "outlier_share": (0.0, 0.05),
+         "leader_loiter_speed": (0.05, 0.15), "leader_sprint_speed": (0.8, 1.0),
+         "leader_loiter_mean_s": (5.0, 12.0), "leader_sprint_mean_s": (3.0, 8.0)}),
+    "Leader-Hard": _leader(
+        "Hard", 7, "Hard's link; sharp manoeuvres (short legs, 0.25-0.4 rad/s U-turns), 5-15 % outlier fixes",
+        {"leader_modes": 2.0},
+        {"leader_turn_rate": (0.15, 0.30), "leader_cruise_mean_s": (5.0, 12.0), "leader_turn_mean_s": (3.0, 8.0),
+         "leader_leg_m": (5.0, 12.0), "leader_uturn_rate": (0.25, 0.40), "outlier_share": (0.05, 0.15),
+         "leader_loiter_speed": (0.05, 0.15), "leader_sprint_speed": (0.9, 1.2),
+         "leader_loiter_mean_s": (5.0, 12.0), "leader_sprint_mean_s": (3.0, 8.0)}),
+})
+#: every tier: the OU-target tiers (TIERS) and the Leader tiers (LEADER_TIERS)
+ALL_TIERS: Mapping[str, Tier] = MappingProxyType({**TIERS, **LEADER_TIERS})
 TIER_NAMES: tuple[str, ...] = tuple(TIERS)
+LEADER_TIER_NAMES: tuple[str, ...] = tuple(LEADER_TIERS)
 
 
 def make_tier_config(tier: str, disturbance: str | None = None, **overrides: object) -> EnvConfig:
@@ -141,9 +184,9 @@ def make_tier_config(tier: str, disturbance: str | None = None, **overrides: obj
         UnknownKeywordError: an override that does not exist (a TypeError; also a ValueError).
         ValueError: unknown tier or a bad override value.
     """
-    if not isinstance(tier, str) or tier not in TIERS:
-        raise ValueError(f"tier={tier!r} is unknown: valid tiers are {list(TIERS)}")
-    t = TIERS[tier]
+    if not isinstance(tier, str) or tier not in ALL_TIERS:
+        raise ValueError(f"tier={tier!r} is unknown: valid tiers are {list(ALL_TIERS)}")
+    t = ALL_TIERS[tier]
     # (a None for a field the tier does not set, or for an unknown keyword, goes on to make_config,
     # which leaves the first out and refuses the second)
     given = {k: v for k, v in overrides.items() if v is not None or (k not in t.fixed and k not in t.ranges)}
@@ -181,7 +224,7 @@ def _fmt(v: object) -> str:
 def tier_table_markdown() -> str:
     """One Markdown table per tier: every v1 field that differs from v0's default, with unit."""
     out = []
-    for t in TIERS.values():
+    for t in ALL_TIERS.values():
         out.append(f"### {t.env_id}: {t.description}\n")
         out.append(f"Plant {t.scenario} (nominal vehicle), tone disturbances {t.disturbance}; test seeds "
                    f"{t.test_seeds[0]}-{t.test_seeds[-1]}{' (test only)' if t.out_of_distribution else ''}.\n")
@@ -203,7 +246,7 @@ def make_env_config(scenario: str = "S4", disturbance: str | None = None, *, ver
     if tier is not None:
         if version != "v1":
             raise ValueError(f"tier={tier!r} needs version='v1' (got version={version!r})")
-        own = TIERS[tier].scenario if isinstance(tier, str) and tier in TIERS else None
+        own = ALL_TIERS[tier].scenario if isinstance(tier, str) and tier in ALL_TIERS else None
         if own is not None and scenario != own:
             raise ValueError(f"scenario={scenario!r} is invalid on the tier AUVFollow-{tier}-v1: its plant is "
                              f"{own!r}; for another scenario use AUVFollow-v1 (scenario=..., any link setting)")
@@ -219,14 +262,15 @@ _SUMMARY = (("fix period", ("update_period_s",), "s"), ("latency model", ("laten
             ("fix sigma", ("fix_sigma_m", "fix_sigma_per_m"), "m; m/m"),
             ("target speed; its OU std", ("target_speed", "target_speed_std"), "m/s"),
             ("turn-rate OU std", ("target_yaw_rate_std",), "rad/s"), ("GM current", ("current_speed",), "m/s"),
-            ("mismatch", ("mismatch",), "-"), ("thruster lag", ("thruster_tc_s",), "s"))
+            ("mismatch", ("mismatch",), "-"), ("thruster lag", ("thruster_tc_s",), "s"),
+            ("leader modes; outliers", ("leader_modes", "outlier_share"), "-"))
 
 
 def tier_summary_markdown() -> str:
     """One table, a row per tier, of the fields that set its difficulty (U[a, b]: drawn per reset)."""
     head = "| tier | " + " | ".join(f"{h} [{u}]" for h, _, u in _SUMMARY) + " | test seeds |"
     lines = [head, "|" + "---|" * (len(_SUMMARY) + 2)]
-    for t in TIERS.values():
+    for t in ALL_TIERS.values():
         merged = {**t.fixed, **t.ranges}
         cells = []
         for _, names, _ in _SUMMARY:

@@ -38,7 +38,11 @@ CONTROLLERS: tuple[str, ...] = ("PID", "ROBUST_ONLY", "PRED_ONLY", "PROPOSED")
 #:   disturbance observer's estimate as a constant force in its model (offset-free MPC) and the
 #:   task's thrusters (lag, rate limit) in its model and constraints, solved for all envs at once
 #:   (:mod:`controllers.mpc`).
-EXTENDED_CONTROLLERS: tuple[str, ...] = ("PROPOSED_KF", "PROPOSED_KF_DOB", "MPC")
+#: * ``PROPOSED_IMM_DOB``: PROPOSED_KF_DOB with the *generic* estimator of the Leader tiers in place
+#:   of the tier's linear filter: an IMM over constant-velocity and coordinated-turn models with
+#:   gating (:mod:`controllers._imm`), its settings fitted per Leader tier on training seeds
+#:   (:data:`LEADER_IMM`; elsewhere the IMM's defaults).
+EXTENDED_CONTROLLERS: tuple[str, ...] = ("PROPOSED_KF", "PROPOSED_KF_DOB", "MPC", "PROPOSED_IMM_DOB")
 ALL_CONTROLLERS: tuple[str, ...] = CONTROLLERS + EXTENDED_CONTROLLERS
 #: time constant of the disturbance observer's low-pass filter [s] (ours; tuned on seeds 100-119)
 DOB_TIME_CONSTANT = 0.5
@@ -47,7 +51,17 @@ DOB_TIME_CONSTANT = 0.5
 #: TRAINING seeds 500-599 of each tier (``python -m experiments.estimator_study``,
 #: results/estimator_study.md); Easy's 3 and 4 tie within 0.5 % (the smaller is kept). Extreme
 #: (out of distribution, never tuned on) takes Hard's. Every other task keeps :class:`Gains`' K_p = 1.
-TIER_K_P: dict[str, float] = {"Easy": 3.0, "Medium": 3.0, "Hard": 2.0, "Extreme": 2.0}
+TIER_K_P: dict[str, float] = {"Easy": 3.0, "Medium": 3.0, "Hard": 2.0, "Extreme": 2.0,
+                              # the Leader tiers keep the link of the level's tier: its gain (not re-tuned)
+                              "Leader-Easy": 3.0, "Leader-Medium": 3.0, "Leader-Hard": 2.0}
+#: the IMM's settings per Leader tier (ours): the best of the grid of experiments/leader_estimators.py
+#: by the IQM of the present reference point's estimation error on TRAINING seeds 0-63
+#: (``python -m experiments.leader_estimators``, results/leader_estimators.md; a test checks the two agree)
+LEADER_IMM: dict[str, dict[str, float]] = {
+    "Leader-Easy": {"imm_q_u": 0.001, "imm_q_r": 0.001, "imm_q_h": 0.001, "imm_tau_s": 40.0},
+    "Leader-Medium": {"imm_q_u": 0.001, "imm_q_r": 0.001, "imm_q_h": 0.0001, "imm_tau_s": 40.0},
+    "Leader-Hard": {"imm_q_u": 0.01, "imm_q_r": 0.001, "imm_q_h": 0.001, "imm_tau_s": 40.0},
+}
 
 
 def thruster_model(spec: TaskSpec) -> dict[str, float]:
@@ -62,7 +76,7 @@ def default_gains(name: str, spec: TaskSpec) -> Gains | None:
     passed: :data:`TIER_K_P` for the estimator-based hierarchical laws on a tier, else None
     (the :class:`Gains` defaults)."""
     tier = getattr(spec, "tier", None)
-    if name in ("PROPOSED_KF", "PROPOSED_KF_DOB") and tier in TIER_K_P:
+    if name in ("PROPOSED_KF", "PROPOSED_KF_DOB", "PROPOSED_IMM_DOB") and tier in TIER_K_P:
         return Gains(K_p=TIER_K_P[tier])
     return None
 
@@ -91,6 +105,15 @@ def make_controller(name: str, spec: TaskSpec, gains: Gains | None = None) -> Sc
         gains = gains if gains is not None else default_gains(name, spec)
         return HierarchicalController(spec, prediction=True, robust=True, gains=gains, name=name,
                                       estimator=TargetEstimator(spec), disturbance_observer=dob)
+    if name == "PROPOSED_IMM_DOB":
+        import dataclasses
+
+        cfg = dataclasses.replace(EstimatorConfig.for_spec(spec), model="IMM",
+                                  **LEADER_IMM.get(getattr(spec, "tier", None), {}))
+        dob = DisturbanceObserver(spec.nominal, spec.dt, spec.force_limits, DOB_TIME_CONSTANT)
+        gains = gains if gains is not None else default_gains(name, spec)
+        return HierarchicalController(spec, prediction=True, robust=True, gains=gains, name=name,
+                                      estimator=TargetEstimator(spec, cfg), disturbance_observer=dob)
     if name == "MPC":
         from controllers.mpc import MPCController
 

@@ -74,13 +74,13 @@ import numpy as np
 
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1, decode
 from auv_follow_env.params import TaskSpec
-from controllers import _ou0
+from controllers import _imm, _ou0
 from controllers.base import as_batch, as_mask
 
 __all__ = ["EstimatorConfig", "TargetEstimate", "TargetEstimator", "MODELS", "propagate_mean"]
 
 #: model name -> state dimension
-MODELS: dict[str, int] = {"CV": 6, "CT": 6, "CTA": 8, "OU": 7, "OU0": 6}
+MODELS: dict[str, int] = {"CV": 6, "CT": 6, "CTA": 8, "OU": 7, "OU0": 6, "IMM": 5}
 
 #: the model used on the v1 tiers: their target's own (OU speed and turn rate) with its structure
 #: (no sway), in numba (:mod:`controllers._ou0`)
@@ -88,6 +88,38 @@ TIER_MODEL = "OU0"
 
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
 _CSTEP = 1e-30  # complex-step size (any tiny number: no subtractive cancellation)
+
+
+
+def _leader_moments(mid) -> tuple[float, float, float, float]:
+    """An OU target with the second moments of a Leader tier's target (its ranges' midpoints):
+    the speed's and the turn rate's stationary std (time-share-weighted over the modes, wobbles
+    included) and correlation times of the order of a mode's mean duration. What a linear filter
+    can be told of the leader without fitting it; the generic and model-aware estimators of the
+    Leader tiers are separate."""
+    share = mid("leader_survey_share", 0.0)
+    speed = mid("leader_modes", 1.0) >= 2
+    vc, w = mid("leader_cruise_speed", 0.5), mid("leader_turn_rate", 0.15)
+    mc, mt = mid("leader_cruise_mean_s", 10.0), mid("leader_turn_mean_s", 6.0)
+    # wander: time shares of the modes (visit shares times mean durations)
+    vis = [(0.5, mc, vc, 0.0), (0.15 if speed else 0.25, mt, vc, w), (0.15 if speed else 0.25, mt, vc, -w)]
+    if speed:
+        vis += [(0.1, mid("leader_loiter_mean_s", 8.0), mid("leader_loiter_speed", 0.1), 0.0),
+                (0.1, mid("leader_sprint_mean_s", 5.0), mid("leader_sprint_speed", 0.9), 0.0)]
+    tot = sum(v * m for v, m, _, _ in vis)
+    shares = [(v * m / tot, u, r) for v, m, u, r in vis]
+    eu = sum(q * u for q, u, _ in shares)
+    var_u = sum(q * (u - eu) ** 2 for q, u, _ in shares)
+    var_r = sum(q * r * r for q, _, r in shares)
+    # survey: legs and U-turns (time shares by length / speed and pi / rate)
+    ws, leg = mid("leader_uturn_rate", 0.25), mid("leader_leg_m", 10.0)
+    t_leg, t_turn = leg / vc, math.pi / ws
+    var_r_s = t_turn / (t_leg + t_turn) * ws * ws
+    var_u = (1 - share) * var_u + share * (1 - share) * (eu - vc) ** 2 + mid("leader_wobble_speed", 0.02) ** 2
+    var_r = (1 - share) * var_r + share * var_r_s + mid("leader_wobble_rate", 0.01) ** 2
+    tau_u = (1 - share) * mc + share * t_leg
+    tau_r = (1 - share) * mt + share * t_turn
+    return math.sqrt(var_u), tau_u, math.sqrt(var_r), tau_r
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -117,14 +149,20 @@ class EstimatorConfig:
     adapt: bool = False  #: OU0: estimate the OU variances of speed and turn rate per episode from the fixes
     adapt_n0: float = 5.0  #: OU0: weight of the prior variance in that estimate, in fixes [-]
     smooth_s: float = 0.0  #: OU0: a fix's jump of the returned pose decays with this time constant [s] (0: off)
+    imm_q_u: float = 0.01  #: IMM: white-noise intensity on the speed (both models) [m^2/s^3]
+    imm_q_r: float = 0.001  #: IMM: white-noise intensity on the turn rate (CT) [rad^2/s^3]
+    imm_q_h: float = 0.001  #: IMM: white-noise intensity on the heading (CV) [rad^2/s]
+    imm_tau_s: float = 15.0  #: IMM: mean time between switches of the CV / CT models [s] (> 0)
+    imm_gate: bool = True  #: IMM: a fix's position outside the 99.9 % chi-square gate of both models is not used
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
             raise ValueError(f"model={self.model!r} is invalid: must be one of {list(MODELS)}")
-        if not isinstance(self.adapt, bool):
-            raise ValueError(f"adapt={self.adapt!r} is invalid: must be True or False")
+        for b in ("adapt", "imm_gate"):
+            if not isinstance(getattr(self, b), bool):
+                raise ValueError(f"{b}={getattr(self, b)!r} is invalid: must be True or False")
         for f in fields(self):
-            if f.name in ("model", "adapt"):
+            if f.name in ("model", "adapt", "imm_gate"):
                 continue
             v = getattr(self, f.name)
             inf_ok = f.name in ("tau_u", "tau_r") and self.model == "OU0" and v == math.inf
@@ -134,7 +172,7 @@ class EstimatorConfig:
         if (self.adapt or self.smooth_s) and self.model != "OU0":
             raise ValueError(f"adapt={self.adapt!r} / smooth_s={self.smooth_s!r} need model='OU0' "
                              f"(got model={self.model!r})")
-        for n in ("sigma_pos", "sigma_psi", "sigma_vel", "sigma_r", "tau_u", "tau_r"):
+        for n in ("sigma_pos", "sigma_psi", "sigma_vel", "sigma_r", "tau_u", "tau_r", "imm_tau_s"):
             if getattr(self, n) <= 0:
                 raise ValueError(f"{n}={getattr(self, n)!r} is invalid: must be a finite number > 0")
 
@@ -159,9 +197,9 @@ class EstimatorConfig:
         tier = getattr(spec, "tier", None)
         if tier is None:
             return cls()
-        from auv_follow_env.tiers import TIERS
+        from auv_follow_env.tiers import ALL_TIERS
 
-        t = TIERS[tier]
+        t = ALL_TIERS[tier]
 
         def mid(name: str, default: float) -> float:
             if name in t.ranges:
@@ -171,6 +209,15 @@ class EstimatorConfig:
 
         def pos(x: float, floor: float) -> float:
             return max(x, floor)
+
+        if mid("leader_modes", 0.0) > 0:
+            std_u, tau_u, std_r, tau_r = _leader_moments(mid)
+            fx = dict(target_speed_std=std_u, target_speed_corr_s=tau_u, target_yaw_rate_std=std_r,
+                      target_yaw_rate_corr_s=tau_r)
+            base = mid
+
+            def mid(name: str, default: float) -> float:  # noqa: F811  (the OU fields from the leader's moments)
+                return fx[name] if name in fx else base(name, default)
 
         return cls(model=TIER_MODEL, sigma_pos=pos(mid("fix_sigma_m", 0.0), 1e-3),
                    sigma_pos_per_m=mid("fix_sigma_per_m", 0.0), sigma_psi=pos(mid("heading_sigma_rad", 0.0), 1e-3),
@@ -360,6 +407,35 @@ class _OU0State:
 
 
 @dataclass
+class _IMMState:
+    """The IMM kernel's per-env arrays (:func:`controllers._imm.imm_step`)."""
+
+    t_now: np.ndarray  # (N,) [s]
+    odom: np.ndarray  # (N, 2) [m]
+    vel: np.ndarray  # (N, 2) [m/s]
+    psi_f: np.ndarray  # (N,) [rad]
+    init: np.ndarray  # (N,) bool
+    t_fix: np.ndarray  # (N,) [s]
+    m: np.ndarray  # (N, 2, 5) the models' means at t_fix
+    P: np.ndarray  # (N, 2, 5, 5)
+    mu: np.ndarray  # (N, 2) mode probabilities (CV, CT)
+    ng: np.ndarray  # (N, 1) int64: gated fixes in a row
+
+    @classmethod
+    def fresh(cls, n: int) -> _IMMState:
+        return cls(np.zeros(n), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n), np.zeros(n, dtype=bool),
+                   np.zeros(n), np.zeros((n, 2, 5)), np.tile(np.eye(5), (n, 2, 1, 1)), np.full((n, 2), 0.5),
+                   np.zeros((n, 1), dtype=np.int64))
+
+    @property
+    def x(self) -> np.ndarray:  # (the batch size, as the other states' x)
+        return self.m[:, 0]
+
+    def copy(self) -> _IMMState:
+        return _IMMState(*(getattr(self, f.name).copy() for f in fields(self)))
+
+
+@dataclass
 class _Peek:
     """A peek (``step(commit=False)``) kept for the commit that follows it on the same input."""
 
@@ -397,7 +473,8 @@ class TargetEstimator:
         self.model = self.config.model
         self._qc = self.config.process_intensity()
         self._taus = (self.config.tau_u, self.config.tau_r)
-        self._cfg = self._kernel_config() if self.model == "OU0" else None
+        self._cfg = (self._kernel_config() if self.model == "OU0" else
+                     self._imm_config() if self.model == "IMM" else None)
         self._kstep = (_ou0.step_constants(spec.dt, self.config.tau_u, self.config.tau_r)
                        if self.model == "OU0" else None)
         self._s: _FilterState | None = None
@@ -424,6 +501,32 @@ class TargetEstimator:
         cfg[k.C_ADAPT], cfg[k.C_N0], cfg[k.C_SMOOTH] = float(c.adapt), c.adapt_n0, c.smooth_s
         return cfg
 
+    def _imm_config(self) -> np.ndarray:
+        c, k = self.config, _imm
+        cfg = np.zeros(k.NC)
+        cfg[k.C_DT], cfg[k.C_TAU] = self.spec.dt, self.spec.delay_s
+        cfg[k.C_V1] = 1.0 if self.spec.layout == "v1" else 0.0
+        cfg[k.C_SPOS], cfg[k.C_SPM], cfg[k.C_SPSI] = c.sigma_pos, c.sigma_pos_per_m, c.sigma_psi
+        cfg[k.C_SVEL], cfg[k.C_SR] = c.sigma_vel, c.sigma_r
+        cfg[k.C_QU], cfg[k.C_QR], cfg[k.C_QH] = c.imm_q_u, c.imm_q_r, c.imm_q_h
+        cfg[k.C_TS], cfg[k.C_GATE] = c.imm_tau_s, float(c.imm_gate)
+        return cfg
+
+    def _run_imm(self, st: _IMMState, obs: np.ndarray, mask: np.ndarray, with_cov: bool) -> TargetEstimate:
+        n = obs.shape[0]
+        out = np.empty((n, _ou0.NE))
+        cov = np.empty((n if with_cov else 0, 5, 5))
+        _imm.imm_step(obs, mask, self._cfg, st.t_now, st.odom, st.vel, st.psi_f, st.init, st.t_fix, st.m, st.P,
+                      st.mu, st.ng, out, cov)
+        valid = out[:, _ou0.E_VALID] > 0.5
+        state = np.stack([out[:, _ou0.E_X], out[:, _ou0.E_Y], out[:, _ou0.E_PSI], out[:, _ou0.E_U],
+                          out[:, _ou0.E_R]], axis=-1)
+        return TargetEstimate(valid=valid, x=out[:, _ou0.E_X], y=out[:, _ou0.E_Y], psi=out[:, _ou0.E_PSI],
+                              u=out[:, _ou0.E_U], v=np.zeros(n), r=out[:, _ou0.E_R], rel_x=out[:, _ou0.E_RX],
+                              rel_y=out[:, _ou0.E_RY], rel_psi=out[:, _ou0.E_RPSI],
+                              state=np.where(valid[:, None], state, 0.0), cov=cov if with_cov else None,
+                              age=out[:, _ou0.E_AGE])
+
     def _run_ou0(self, st: _OU0State, obs: np.ndarray, mask: np.ndarray, with_cov: bool) -> TargetEstimate:
         n = obs.shape[0]
         out = np.empty((n, _ou0.NE))
@@ -440,6 +543,8 @@ class TargetEstimator:
     def _fresh(self, n: int):
         if self.model == "OU0":
             return _OU0State.fresh(n)
+        if self.model == "IMM":
+            return _IMMState.fresh(n)
         d = self.config.dim
         return _FilterState(np.zeros(n), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n), np.zeros(n, dtype=bool),
                             np.zeros(n), np.zeros((n, d)), np.tile(np.eye(d), (n, 1, 1)))
@@ -543,7 +648,7 @@ class TargetEstimator:
         if self._s is None or self._s.x.shape[0] != n:
             mask = np.ones(n, dtype=bool)
             self._s = self._fresh(n)
-        return obs, (None if self.model == "OU0" else decode(obs)), mask
+        return obs, (None if self.model in ("OU0", "IMM") else decode(obs)), mask
 
     def step(self, observation: np.ndarray, reset_mask: np.ndarray | None = None, *, commit: bool = True,
              with_cov: bool = True) -> TargetEstimate:
@@ -568,7 +673,7 @@ class TargetEstimator:
             ValueError: observation of a wrong shape, or a reset_mask of the wrong length.
         """
         obs, o, mask = self._checked(observation, reset_mask)
-        if self.model == "OU0":
+        if self.model in ("OU0", "IMM"):
             obs = np.ascontiguousarray(obs, dtype=np.float64)
         if not commit:
             st = self._s.copy()
@@ -588,6 +693,8 @@ class TargetEstimator:
     def _run(self, st, obs: np.ndarray, o: dict[str, np.ndarray], mask: np.ndarray, with_cov: bool) -> TargetEstimate:
         if self.model == "OU0":
             return self._run_ou0(st, obs, mask, with_cov)
+        if self.model == "IMM":
+            return self._run_imm(st, obs, mask, with_cov)
         self._advance(st, o, mask)
         return self._present(st, o, with_cov)
 
@@ -629,6 +736,9 @@ class TargetEstimator:
         if self.model == "OU0":  # from the present state (the filter's, without the smoothing offset)
             T = np.broadcast_to(tk[None, :], (n, K))
             X = propagate_mean(self.model, np.repeat(st.xp[:, None, :], K, axis=1), T, self._taus)
+        elif self.model == "IMM":  # the mixture's prediction from the last fix
+            T = np.where(st.init, st.t_now - st.t_fix, 0.0)[:, None] + tk[None, :]
+            X = _imm.imm_trajectory(st.m, st.P, st.mu, st.init, np.ascontiguousarray(T), self._cfg)
         else:
             T = np.where(st.init, st.t_now - st.t_fix, 0.0)[:, None] + tk[None, :]
             X = propagate_mean(self.model, np.repeat(st.x[:, None, :], K, axis=1), T, self._taus)  # (N, K, n)

@@ -171,7 +171,8 @@ def _scenario_table(name: str) -> str:
 
 
 def _tier_block(name: str) -> str:
-    from auv_follow_env.tiers import TIERS, tier_summary_markdown, tier_table_markdown
+    from auv_follow_env.tiers import ALL_TIERS as TIERS
+    from auv_follow_env.tiers import tier_summary_markdown, tier_table_markdown
 
     tier = TIERS[name]
     summary = tier_summary_markdown().splitlines()
@@ -203,7 +204,8 @@ def card_markdown(env_id: str, doc: str | None = None, changelog: str | None = N
     docstring and the repository's CHANGELOG.md)."""
     import gymnasium as gym
 
-    from auv_follow_env.tiers import TIERS, make_env_config
+    from auv_follow_env.tiers import ALL_TIERS as TIERS
+    from auv_follow_env.tiers import make_env_config
 
     spec = gym.registry[env_id]
     kwargs = dict(spec.kwargs)
@@ -216,7 +218,7 @@ def card_markdown(env_id: str, doc: str | None = None, changelog: str | None = N
 
     if tier is not None:
         what = f"Acoustic-link tier **{tier.name}**: {tier.description}."
-        seeds = f"{_seed_text(tier.test_seeds)}: `auv_follow_env.TIERS[\"{tier.name}\"].test_seeds`"
+        seeds = f"{_seed_text(tier.test_seeds)}: `auv_follow_env.ALL_TIERS[\"{tier.name}\"].test_seeds`"
         if tier.out_of_distribution:
             what += " Out of distribution: for testing only, never train or tune on it."
     elif scenario is not None:
@@ -281,7 +283,8 @@ def index_markdown(ids: list[str]) -> str:
     """The table of cards appended to docs/envs.md: one row per id, linking to its card."""
     import gymnasium as gym
 
-    from auv_follow_env.tiers import TIERS, make_env_config
+    from auv_follow_env.tiers import ALL_TIERS as TIERS
+    from auv_follow_env.tiers import make_env_config
 
     rows = ["", "| id | observation | what varies per reset | test seeds |", "|---|---|---|---|"]
     for env_id in ids:

@@ -45,7 +45,7 @@ def straight_line_run(policy, config, steps: int):
 
 def test_registry_keeps_the_paper_four_and_lists_ours_apart():
     assert CONTROLLERS == ("PID", "ROBUST_ONLY", "PRED_ONLY", "PROPOSED")
-    assert EXTENDED_CONTROLLERS == ("PROPOSED_KF", "PROPOSED_KF_DOB", "MPC")
+    assert EXTENDED_CONTROLLERS == ("PROPOSED_KF", "PROPOSED_KF_DOB", "MPC", "PROPOSED_IMM_DOB")
     assert ALL_CONTROLLERS == CONTROLLERS + EXTENDED_CONTROLLERS
     with pytest.raises(ValueError, match="MPC"):
         make_controller("LQR", make_config("S4").task_spec())

@@ -68,7 +68,7 @@ def test_every_registered_id_has_a_card(site):
 
     out, _ = site
     ids = _registered_ids()
-    assert len(ids) == 10  # S1-S4, v0, four tiers, v1
+    assert len(ids) == 13  # S1-S4, v0, four tiers, three Leader tiers, v1
     index = (out / "envs" / "index.html").read_text()
     for env_id in ids:
         page = out / "envs" / env_id / "index.html"
@@ -78,6 +78,8 @@ def test_every_registered_id_has_a_card(site):
     hard = (out / "envs" / "AUVFollow-Hard-v1" / "index.html").read_text()
     seeds = TIERS["Hard"].test_seeds
     assert (seeds[0], seeds[-1]) == (3000000, 3000099) and "3000000-3000099" in hard
+    leader = (out / "envs" / "AUVFollow-Leader-Hard-v1" / "index.html").read_text()
+    assert "7000000-7000099" in leader and "leader_uturn_rate" in leader
 
 
 def test_every_card_is_in_the_nav():

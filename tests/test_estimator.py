@@ -247,9 +247,10 @@ def test_peek_does_not_change_the_filter():
         np.testing.assert_array_equal(ea.state, eb.state)
 
 
-@pytest.mark.parametrize("kwargs, name", [({"model": "IMM"}, "model"), ({"sigma_pos": 0.0}, "sigma_pos"),
+@pytest.mark.parametrize("kwargs, name", [({"model": "UKF"}, "model"), ({"sigma_pos": 0.0}, "sigma_pos"),
                                           ({"q_acc": -1.0}, "q_acc"), ({"q_yaw": float("nan")}, "q_yaw"),
-                                          ({"sigma_pos_per_m": True}, "sigma_pos_per_m")])
+                                          ({"sigma_pos_per_m": True}, "sigma_pos_per_m"),
+                                          ({"imm_tau_s": 0.0}, "imm_tau_s"), ({"imm_gate": 1}, "imm_gate")])
 def test_config_rejects_bad_values_naming_the_field(kwargs, name):
     with pytest.raises(ValueError, match=name):
         EstimatorConfig(**kwargs)

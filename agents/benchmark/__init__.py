@@ -54,6 +54,7 @@ from agents.benchmark.outputs import BenchmarkResult, OutputWriteError, load_res
 from agents.benchmark.policies import IncompatiblePolicy, PolicySpec, parse_policy
 from agents.benchmark.protocol import (
     ERROR_METRICS,
+    LEADER_TIERS,
     LEADERBOARD_METRICS,
     RESERVED_LABELS,
     V0_TEST_SEEDS,
@@ -77,7 +78,7 @@ from agents.benchmark.stats import (
 
 __all__ = ["BenchmarkResult", "DEFAULT_RESAMPLES", "ERROR_METRICS", "IncompatiblePolicy", "LEADERBOARD_METRICS",
            "MAX_RESAMPLES", "OutputWriteError", "PolicySpec", "RESERVED_LABELS", "V0_TEST_SEEDS",
-           "V0_TIERS", "V1_TIERS", "available_tiers", "benchmark", "benchmark_summary", "check_labels",
+           "V0_TIERS", "V1_TIERS", "LEADER_TIERS", "available_tiers", "benchmark", "benchmark_summary", "check_labels",
            "check_seed_list", "default_test_seeds", "evaluate_tier", "goal_check", "iqm", "leaderboard",
            "leaderboard_markdown", "load_result", "paired_difference", "parse_policy", "plot_leaderboard",
            "probability_of_improvement", "provenance", "replace_set", "resolve_tier", "scores",

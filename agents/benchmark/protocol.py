@@ -20,6 +20,11 @@ V0_TIERS: tuple[str, ...] = ("S1", "S2", "S3", "S4")
 V1_TIERS: tuple[str, ...] = ("Easy", "Medium", "Hard", "Extreme")
 
 
+#: the Leader tiers (targets with hidden manoeuvre modes; ids AUVFollow-Leader-<level>-v1). Their
+#: floors are not today's linear ones (the Bayes floor under the mode generator is not built yet)
+LEADER_TIERS: tuple[str, ...] = ("Leader-Easy", "Leader-Medium", "Leader-Hard")
+
+
 #: test seeds of the paper scenarios (our choice: 100 seeds; training uses seeds < 1000 and the
 #: EvalCallback seed 500, so these are held out)
 V0_TEST_SEEDS: tuple[int, ...] = tuple(range(1000, 1100))
@@ -91,7 +96,7 @@ def _v1_registered(tier: str) -> bool:
 
 def available_tiers() -> list[str]:
     """The tier names this installation can score (v1 tiers appear once registered)."""
-    return list(V0_TIERS) + [t for t in V1_TIERS if _v1_registered(t)]
+    return list(V0_TIERS) + [t for t in V1_TIERS + LEADER_TIERS if _v1_registered(t)]
 
 
 def resolve_tier(tier: str) -> tuple[str, str]:
@@ -103,11 +108,11 @@ def resolve_tier(tier: str) -> tuple[str, str]:
     if not isinstance(tier, str):
         raise ValueError(f"tier={tier!r} is invalid: must be a tier name, one of {available_tiers()}")
     name = tier
-    if tier.startswith("AUVFollow-") and tier.count("-") == 2:
-        name = tier.split("-")[1]
+    if tier.startswith("AUVFollow-") and tier.count("-") in (2, 3):
+        name = tier[len("AUVFollow-"):].rsplit("-", 1)[0]
     if name in V0_TIERS:
         return name, f"AUVFollow-{name}-v0"
-    if name in V1_TIERS and _v1_registered(name):
+    if name in V1_TIERS + LEADER_TIERS and _v1_registered(name):
         return name, f"AUVFollow-{name}-v1"
     raise ValueError(f"tier={tier!r} is unknown or not registered: valid tiers are {available_tiers()}")
 
@@ -157,7 +162,7 @@ def _published_seeds(name: str, env_id: str) -> list[int] | None:
             for key in (name, env_id):
                 if key in table:
                     return [int(s) for s in table[key]]
-        tiers = getattr(mod, "TIERS", None)
+        tiers = getattr(mod, "ALL_TIERS", None) or getattr(mod, "TIERS", None)
         if isinstance(tiers, Mapping):
             for key in (name, env_id):
                 t = tiers.get(key)

@@ -105,7 +105,7 @@ def check_action_filter(action_filter: Any) -> float:
 
 
 #: estimator model -> indices of its velocity states (the state starts x, y, psi for every model)
-_VEL_STATES = {"CV": (3, 4), "CT": (3, 4), "CTA": (3, 4), "OU": (3, 4), "OU0": (3,)}
+_VEL_STATES = {"CV": (3, 4), "CT": (3, 4), "CTA": (3, 4), "OU": (3, 4), "OU0": (3,), "IMM": (3,)}
 
 
 def estimator_features(est: Any, d_hat: np.ndarray, since_arrival: np.ndarray, spec: Any,

@@ -1,0 +1,544 @@
+"""Numba kernel of the ``IMM`` target filter (:mod:`controllers.estimator`): the *generic*
+estimator of the Leader tiers, built as tracking practice builds one without knowing the
+target's generator: an interacting multiple model (Blom and Bar-Shalom, 1988) over a
+constant-velocity (CV) and a coordinated-turn (CT) model, with a chi-square gate on the fix's
+position, for a batch of envs in one call.
+
+State (5): ``x, y, psi`` (odometry frame [m, m, rad]), ``u`` (surge [m/s]), ``r`` (turn rate
+[rad/s]; held at 0 in CV). Motion over a span T: CV straight at speed u along psi; CT the exact
+arc at constant u and r. Jacobians in closed form; the discrete process noise
+int_0^T Phi Q_c Phi^T ds by Simpson's rule along the mean. Process noise intensities: ``q_u``
+[m^2/s^3] on the speed (both models), ``q_r`` [rad^2/s^3] on the turn rate (CT), ``q_h``
+[rad^2/s] on the heading (CV: a slow drift of a straight course). The models switch as a
+two-state Markov chain with mean sojourn ``tau_s`` [s] (probability of a switch over T:
+(1 - e^{-2 T / tau_s}) / 2).
+
+A fix whose position is outside the 99.9 % chi-square gate of every model (d^2 > 13.82, two
+degrees of freedom) is taken without its position (heading, speed and turn rate still update);
+after two gated fixes in a row the filter restarts at the newest fix (the target has moved far
+from the prediction, or the filter has lost it).
+
+Out-of-order fixes: in the envs the receiver keeps the newest packet, so a fix older than the
+filter's is never observed (the link counts it as discarded). :func:`imm_filter_fixes` takes fixes
+in *arrival* order and handles an out-of-order fix by retrodiction: it inserts the fix in the
+buffer sorted by measurement time and re-runs the filter from the snapshot before it, so the
+result equals that of the same fixes in measurement order.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from controllers._ou0 import (
+    E_AGE,
+    E_PSI,
+    E_R,
+    E_RPSI,
+    E_RX,
+    E_RY,
+    E_U,
+    E_VALID,
+    E_X,
+    E_Y,
+    NE,
+    O_AGE,
+    O_C,
+    O_DX,
+    O_DY,
+    O_HAS,
+    O_NEW,
+    O_S,
+    O_TC,
+    O_TR,
+    O_TS,
+    O_TU,
+    O_U,
+    O_V,
+)
+
+# config vector (float64) indices
+C_DT, C_TAU, C_V1 = 0, 1, 2
+C_SPOS, C_SPM, C_SPSI, C_SVEL, C_SR = 3, 4, 5, 6, 7
+C_QU, C_QR, C_QH, C_TS, C_GATE = 8, 9, 10, 11, 12
+NC = 13
+GATE_POS = 13.815510557964274  #: chi-square(2) 99.9 % quantile
+NX = 5
+
+
+@njit(cache=True, inline="always")
+def _wrap(a):
+    return math.atan2(math.sin(a), math.cos(a))
+
+
+@njit(cache=True)
+def _prop(x, T, turn, out, J):
+    """The mean (5,) of state x after T seconds under CV (turn False) or CT, into ``out``, and
+    its Jacobian into J (5, 5)."""
+    px, py, psi, u, r = x[0], x[1], x[2], x[3], x[4]
+    s0, c0 = math.sin(psi), math.cos(psi)
+    for a in range(NX):
+        for b in range(NX):
+            J[a, b] = 0.0
+        J[a, a] = 1.0
+    if turn:
+        rs = r
+        if abs(r) < 1e-5:
+            rs = 1e-5 if r >= 0 else -1e-5
+        p1 = psi + rs * T
+        s1, c1 = math.sin(p1), math.cos(p1)
+        ds, dc = s1 - s0, c0 - c1
+        out[0] = px + u * ds / rs
+        out[1] = py + u * dc / rs
+        out[2] = psi + r * T
+        out[3] = u
+        out[4] = r
+        J[0, 2] = u * (c1 - c0) / rs
+        J[0, 3] = ds / rs
+        J[0, 4] = -u * ds / (rs * rs) + u * T * c1 / rs
+        J[1, 2] = u * (s1 - s0) / rs
+        J[1, 3] = dc / rs
+        J[1, 4] = -u * dc / (rs * rs) + u * T * s1 / rs
+        J[2, 4] = T
+    else:
+        out[0] = px + u * T * c0
+        out[1] = py + u * T * s0
+        out[2] = psi
+        out[3] = u
+        out[4] = 0.0
+        J[0, 2] = -u * T * s0
+        J[0, 3] = T * c0
+        J[1, 2] = u * T * c0
+        J[1, 3] = T * s0
+        J[4, 4] = 0.0
+
+
+@njit(cache=True)
+def _predict(x0, P0, T, turn, qc, m, P, tmp5, J, Jh, tmpm):
+    """Mean m and covariance P of one model after T from (x0, P0): J P0 J^T plus the discrete
+    process noise by Simpson's rule (weights 1, 4, 1 at 0, T/2, T)."""
+    _prop(x0, T, turn, m, J)
+    for a in range(NX):
+        for b in range(NX):
+            acc = 0.0
+            for k in range(NX):
+                acc += J[a, k] * P0[k, b]
+            tmpm[a, b] = acc
+    for a in range(NX):
+        for b in range(NX):
+            acc = 0.0
+            for k in range(NX):
+                acc += tmpm[a, k] * J[b, k]
+            P[a, b] = acc
+    if T <= 0.0:
+        return
+    for node in range(3):
+        f = 0.5 * node
+        w = (1.0, 4.0, 1.0)[node] * T / 6.0
+        _prop(x0, f * T, turn, tmp5, Jh)  # the mean at f T ...
+        _prop(tmp5, (1.0 - f) * T, turn, tmp5, Jh)  # ... and Phi(T, f T) there (tmp5 is overwritten, unused)
+        for a in range(NX):
+            for b in range(NX):
+                acc = 0.0
+                for k in range(NX):
+                    acc += Jh[a, k] * qc[k] * Jh[b, k]
+                P[a, b] += w * acc
+
+
+@njit(cache=True)
+def _solve_sym(S, n, Sinv):
+    """Inverse of the symmetric positive-definite S (n, n) by Gauss-Jordan; returns log det S."""
+    A = np.empty((n, 2 * n))
+    for a in range(n):
+        for b in range(n):
+            A[a, b] = S[a, b]
+            A[a, n + b] = 1.0 if a == b else 0.0
+    logdet = 0.0
+    for c in range(n):
+        piv = c
+        for a in range(c + 1, n):
+            if abs(A[a, c]) > abs(A[piv, c]):
+                piv = a
+        if piv != c:
+            for b in range(2 * n):
+                A[c, b], A[piv, b] = A[piv, b], A[c, b]
+        d = A[c, c]
+        logdet += math.log(abs(d))
+        for b in range(2 * n):
+            A[c, b] /= d
+        for a in range(n):
+            if a != c:
+                f = A[a, c]
+                for b in range(2 * n):
+                    A[a, b] -= f * A[c, b]
+    for a in range(n):
+        for b in range(n):
+            Sinv[a, b] = A[a, n + b]
+    return logdet
+
+
+@njit(cache=True)
+def imm_init(m, P, mu, z, var):
+    """Start both models at the fix z (5,) with variances var (5,); CV's turn rate at 0."""
+    for j in range(2):
+        for a in range(NX):
+            m[j, a] = z[a]
+            for b in range(NX):
+                P[j, a, b] = 0.0
+            P[j, a, a] = var[a]
+    m[0, 4] = 0.0
+    P[0, 4, 4] = 1e-10
+    mu[0] = 0.5
+    mu[1] = 0.5
+
+
+@njit(cache=True)
+def _mix(m, P, mu, T, ts, c, x0, P0, with_cov):
+    """The IMM's interaction over a span T: predicted mode probabilities c (2,), mixed initial
+    means x0 (2, 5) and covariances P0 (2, 5, 5) (if ``with_cov``)."""
+    p = 0.5 * (1.0 - math.exp(-2.0 * T / ts))
+    for j in range(2):
+        c[j] = mu[0] * (1.0 - p if j == 0 else p) + mu[1] * (p if j == 0 else 1.0 - p)
+    d = np.empty(NX)
+    for j in range(2):
+        cj = max(c[j], 1e-300)
+        w0 = mu[0] * (1.0 - p if j == 0 else p) / cj
+        w1 = mu[1] * (p if j == 0 else 1.0 - p) / cj
+        # x0_j = m_j + sum_i w_ij (m_i - m_j), the heading difference wrapped
+        for a in range(NX):
+            d[a] = m[1 - j, a] - m[j, a]
+        d[2] = _wrap(d[2])
+        wo = w1 if j == 0 else w0  # the weight of the other model
+        for a in range(NX):
+            x0[j, a] = m[j, a] + wo * d[a]
+        if with_cov:
+            # P0_j = sum_i w_ij (P_i + e_ij e_ij^T), e_ij = m_i - x0_j
+            ws = w0 if j == 0 else w1  # own weight
+            for a in range(NX):
+                for b in range(NX):
+                    ea_own, eb_own = -wo * d[a], -wo * d[b]
+                    ea_oth, eb_oth = (1.0 - wo) * d[a], (1.0 - wo) * d[b]
+                    P0[j, a, b] = (ws * (P[j, a, b] + ea_own * eb_own)
+                                   + wo * (P[1 - j, a, b] + ea_oth * eb_oth))
+    x0[0, 4] = 0.0
+    if with_cov:
+        for a in range(NX):
+            P0[0, 4, a] = 0.0
+            P0[0, a, 4] = 0.0
+        P0[0, 4, 4] = 1e-10
+
+
+@njit(cache=True)
+def imm_update(m, P, mu, ng, T, z, var, cfg):
+    """One fix z (5,) with variances var (5,), T seconds after the filter's last: interaction,
+    prediction of both models, gating, update and the new mode probabilities (all in place).
+    Returns True if the fix's position was gated out."""
+    qc = np.zeros((2, NX))
+    qc[0, 2] = cfg[C_QH]
+    qc[0, 3] = cfg[C_QU]
+    qc[1, 3] = cfg[C_QU]
+    qc[1, 4] = cfg[C_QR]
+    c = np.empty(2)
+    x0 = np.empty((2, NX))
+    P0 = np.empty((2, NX, NX))
+    _mix(m, P, mu, T, cfg[C_TS], c, x0, P0, True)
+    mp = np.empty((2, NX))
+    Pp = np.empty((2, NX, NX))
+    tmp5, J, Jh, tmpm = np.empty(NX), np.empty((NX, NX)), np.empty((NX, NX)), np.empty((NX, NX))
+    for j in range(2):
+        _predict(x0[j], P0[j], T, j == 1, qc[j], mp[j], Pp[j], tmp5, J, Jh, tmpm)
+    nu = np.empty((2, NX))
+    for j in range(2):
+        for a in range(NX):
+            nu[j, a] = z[a] - mp[j, a]
+        nu[j, 2] = _wrap(nu[j, 2])
+    # the position gate: outside it for every model -> the position is not used
+    S2, S2i = np.empty((2, 2)), np.empty((2, 2))
+    dmin = math.inf
+    for j in range(2):
+        for a in range(2):
+            for b in range(2):
+                S2[a, b] = Pp[j, a, b] + (var[a] if a == b else 0.0)
+        _solve_sym(S2, 2, S2i)
+        d2 = 0.0
+        for a in range(2):
+            for b in range(2):
+                d2 += nu[j, a] * S2i[a, b] * nu[j, b]
+        dmin = min(dmin, d2)
+    gated = cfg[C_GATE] > 0.0 and dmin > GATE_POS
+    R = var.copy()
+    if gated:
+        R[0] = 1e8
+        R[1] = 1e8
+    S, Si = np.empty((NX, NX)), np.empty((NX, NX))
+    ll = np.empty(2)
+    K = np.empty((NX, NX))
+    for j in range(2):
+        for a in range(NX):
+            for b in range(NX):
+                S[a, b] = Pp[j, a, b] + (R[a] if a == b else 0.0)
+        logdet = _solve_sym(S, NX, Si)
+        q = 0.0
+        for a in range(NX):
+            for b in range(NX):
+                q += nu[j, a] * Si[a, b] * nu[j, b]
+        ll[j] = -0.5 * (q + logdet)
+        for a in range(NX):
+            for b in range(NX):
+                acc = 0.0
+                for k in range(NX):
+                    acc += Pp[j, a, k] * Si[k, b]
+                K[a, b] = acc
+        for a in range(NX):
+            acc = 0.0
+            for k in range(NX):
+                acc += K[a, k] * nu[j, k]
+            m[j, a] = mp[j, a] + acc
+        for a in range(NX):
+            for b in range(NX):
+                acc = 0.0
+                for k in range(NX):
+                    acc += K[a, k] * Pp[j, k, b]
+                P[j, a, b] = Pp[j, a, b] - acc
+        for a in range(NX):
+            for b in range(a + 1, NX):
+                v = 0.5 * (P[j, a, b] + P[j, b, a])
+                P[j, a, b] = v
+                P[j, b, a] = v
+    m[0, 4] = 0.0
+    top = max(ll[0], ll[1])
+    w0 = c[0] * math.exp(ll[0] - top)
+    w1 = c[1] * math.exp(ll[1] - top)
+    mu[0] = w0 / (w0 + w1)
+    mu[1] = w1 / (w0 + w1)
+    ng[0] = ng[0] + 1 if gated else 0
+    if ng[0] >= 2:
+        imm_init(m, P, mu, z, var)
+        ng[0] = 0
+    return gated
+
+
+@njit(cache=True)
+def imm_present(m, P, mu, T, cfg, out_x, with_cov, out_P):
+    """The present state T seconds after the last fix: the models' predictions weighted by the
+    predicted mode probabilities; the heading as the weighted circular mean. out_x (5,); the
+    mixture covariance into out_P (5, 5) if ``with_cov``."""
+    qc = np.zeros((2, NX))
+    qc[0, 2] = cfg[C_QH]
+    qc[0, 3] = cfg[C_QU]
+    qc[1, 3] = cfg[C_QU]
+    qc[1, 4] = cfg[C_QR]
+    c = np.empty(2)
+    x0 = np.empty((2, NX))
+    P0 = np.empty((2, NX, NX))
+    _mix(m, P, mu, T, cfg[C_TS], c, x0, P0, with_cov)
+    mp = np.empty((2, NX))
+    Pp = np.empty((2, NX, NX))
+    tmp5, J, Jh, tmpm = np.empty(NX), np.empty((NX, NX)), np.empty((NX, NX)), np.empty((NX, NX))
+    for j in range(2):
+        if with_cov:
+            _predict(x0[j], P0[j], T, j == 1, qc[j], mp[j], Pp[j], tmp5, J, Jh, tmpm)
+        else:
+            _prop(x0[j], T, j == 1, mp[j], J)
+    sx, sy = 0.0, 0.0
+    for a in range(NX):
+        out_x[a] = 0.0
+    for j in range(2):
+        for a in (0, 1, 3, 4):
+            out_x[a] += c[j] * mp[j, a]
+        sx += c[j] * math.cos(mp[j, 2])
+        sy += c[j] * math.sin(mp[j, 2])
+    # the heading: the weighted circular mean, kept on the branch of the most likely model
+    ref = mp[0, 2] if c[0] >= c[1] else mp[1, 2]
+    out_x[2] = ref + _wrap(math.atan2(sy, sx) - ref)
+    if with_cov:
+        for a in range(NX):
+            for b in range(NX):
+                acc = 0.0
+                for j in range(2):
+                    da = mp[j, a] - out_x[a]
+                    db = mp[j, b] - out_x[b]
+                    if a == 2:
+                        da = _wrap(da)
+                    if b == 2:
+                        db = _wrap(db)
+                    acc += c[j] * (Pp[j, a, b] + da * db)
+                out_P[a, b] = acc
+
+
+@njit(cache=True)
+def _fix_variances(cfg, dx, dy, var):
+    sp = cfg[C_SPOS] + cfg[C_SPM] * math.sqrt(dx * dx + dy * dy)
+    var[0] = sp * sp
+    var[1] = sp * sp
+    var[2] = cfg[C_SPSI] * cfg[C_SPSI]
+    var[3] = cfg[C_SVEL] * cfg[C_SVEL]
+    var[4] = cfg[C_SR] * cfg[C_SR]
+
+
+@njit(cache=True)
+def imm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out):
+    """One control step of the IMM filter for every env (all arrays updated in place).
+
+    obs (N, W) observations (W = 16: v0, a fix ``tau`` old every step; 20: v1); reset (N,) bool;
+    cfg: the config vector (C_*). State: t_now, psi_f (N,), odom, vel (N, 2), init (N,) bool,
+    t_fix (N,), m (N, 2, 5), P (N, 2, 5, 5), mu (N, 2), ng (N, 1) (gated fixes in a row).
+    out (N, NE): the present estimate (the OU0 kernel's columns E_*); cov_out (N, 5, 5) or
+    (0, 5, 5): the present mixture covariance (or not wanted). The odometry frame and the timing
+    of fixes are the OU0 kernel's: a fix not newer than the filter's is ignored (never observed
+    in the envs: the receiver keeps the newest packet).
+    """
+    n = obs.shape[0]
+    want_cov = cov_out.shape[0] > 0
+    dt = cfg[C_DT]
+    v1 = cfg[C_V1] != 0.0
+    z = np.empty(NX)
+    var = np.empty(NX)
+    xo = np.empty(NX)
+    Po = np.empty((NX, NX))
+    for i in range(n):
+        pf = math.atan2(obs[i, O_S], obs[i, O_C])
+        c = math.cos(pf)
+        s = math.sin(pf)
+        vx = c * obs[i, O_U] - s * obs[i, O_V]
+        vy = s * obs[i, O_U] + c * obs[i, O_V]
+        if reset[i]:
+            odom[i, 0] = 0.0
+            odom[i, 1] = 0.0
+            t_now[i] = 0.0
+            init[i] = False
+            ng[i, 0] = 0
+        else:
+            odom[i, 0] += 0.5 * dt * (vel[i, 0] + vx)
+            odom[i, 1] += 0.5 * dt * (vel[i, 1] + vy)
+            t_now[i] += dt
+        vel[i, 0] = vx
+        vel[i, 1] = vy
+        psi_f[i] = pf
+        if v1:
+            fresh = obs[i, O_HAS] > 0.5 and (obs[i, O_NEW] > 0.5 or not init[i])
+            t_meas = t_now[i] - obs[i, O_AGE]
+        else:
+            fresh = True
+            t_meas = t_now[i] - cfg[C_TAU]
+        if fresh and init[i] and not (t_meas > t_fix[i] + 1e-6):
+            fresh = False
+        if fresh:
+            dx, dy = obs[i, O_DX], obs[i, O_DY]
+            z[0] = odom[i, 0] + c * dx - s * dy
+            z[1] = odom[i, 1] + s * dx + c * dy
+            z[2] = pf + math.atan2(obs[i, O_TS], obs[i, O_TC])
+            z[3] = obs[i, O_TU]
+            z[4] = obs[i, O_TR]
+            _fix_variances(cfg, dx, dy, var)
+            if init[i]:
+                z[2] = m[i, 0, 2] + _wrap(z[2] - m[i, 0, 2])  # the heading on the filter's branch
+                imm_update(m[i], P[i], mu[i], ng[i], t_meas - t_fix[i], z, var, cfg)
+            else:
+                imm_init(m[i], P[i], mu[i], z, var)
+                init[i] = True
+                ng[i, 0] = 0
+            t_fix[i] = t_meas
+        if init[i]:
+            imm_present(m[i], P[i], mu[i], t_now[i] - t_fix[i], cfg, xo, want_cov, Po)
+            out[i, E_VALID] = 1.0
+            out[i, E_X] = xo[0]
+            out[i, E_Y] = xo[1]
+            out[i, E_PSI] = xo[2]
+            out[i, E_U] = xo[3]
+            out[i, E_R] = xo[4]
+            rx = xo[0] - odom[i, 0]
+            ry = xo[1] - odom[i, 1]
+            out[i, E_RX] = c * rx + s * ry
+            out[i, E_RY] = -s * rx + c * ry
+            out[i, E_RPSI] = _wrap(xo[2] - pf)
+            out[i, E_AGE] = t_now[i] - t_fix[i]
+            if want_cov:
+                for a in range(NX):
+                    for b in range(NX):
+                        cov_out[i, a, b] = Po[a, b]
+        else:
+            for j in range(NE):
+                out[i, j] = 0.0
+            if want_cov:
+                for a in range(NX):
+                    for b in range(NX):
+                        cov_out[i, a, b] = 0.0
+
+
+@njit(cache=True)
+def imm_filter_fixes(t_meas, z, var, cfg, t_query):
+    """Run the filter over fixes given in *arrival* order (times of measurement t_meas (F,),
+    values z (F, 5), variances var (F, 5)): a fix older than one already used is inserted where
+    its measurement time belongs and the filter is re-run from the state before it
+    (retrodiction), so the result is that of the fixes in measurement order. Returns, after each
+    arrival, the present state (F, 5) at t_query (F,) [s, the same clock as t_meas] and the mode
+    probabilities (F, 2)."""
+    F = t_meas.shape[0]
+    order = np.empty(F, dtype=np.int64)  # fix indices in measurement order (the buffer)
+    snap_m = np.empty((F, 2, NX))
+    snap_P = np.empty((F, 2, NX, NX))
+    snap_mu = np.empty((F, 2))
+    snap_ng = np.empty((F, 1), dtype=np.int64)
+    m = np.empty((2, NX))
+    P = np.empty((2, NX, NX))
+    mu = np.empty(2)
+    ng = np.zeros(1, dtype=np.int64)
+    out = np.empty((F, NX))
+    mus = np.empty((F, 2))
+    Po = np.empty((NX, NX))
+    xo = np.empty(NX)
+    nbuf = 0
+    for f in range(F):
+        pos = nbuf
+        while pos > 0 and t_meas[order[pos - 1]] > t_meas[f]:
+            pos -= 1
+        for k in range(nbuf, pos, -1):
+            order[k] = order[k - 1]
+        order[pos] = f
+        nbuf += 1
+        for k in range(pos, nbuf):  # re-run from the snapshot before the inserted fix
+            j = order[k]
+            if k == 0:
+                imm_init(m, P, mu, z[j], var[j])
+                ng[0] = 0
+            else:
+                m[:, :] = snap_m[k - 1]
+                P[:, :, :] = snap_P[k - 1]
+                mu[:] = snap_mu[k - 1]
+                ng[0] = snap_ng[k - 1, 0]
+                zz = z[j].copy()
+                zz[2] = m[0, 2] + _wrap(zz[2] - m[0, 2])
+                imm_update(m, P, mu, ng, t_meas[j] - t_meas[order[k - 1]], zz, var[j], cfg)
+            snap_m[k] = m
+            snap_P[k] = P
+            snap_mu[k] = mu
+            snap_ng[k, 0] = ng[0]
+        last = order[nbuf - 1]
+        m[:, :] = snap_m[nbuf - 1]
+        P[:, :, :] = snap_P[nbuf - 1]
+        mu[:] = snap_mu[nbuf - 1]
+        imm_present(m, P, mu, t_query[f] - t_meas[last], cfg, xo, False, Po)
+        out[f] = xo
+        mus[f] = mu
+    return out, mus
+
+
+@njit(cache=True)
+def imm_trajectory(m, P, mu, init, T, cfg):
+    """The present-state prediction of every env at the spans T (N, K) after its last fix
+    (:func:`imm_present` without covariance), (N, K, 5); zeros where ``init`` is False."""
+    n, K = T.shape
+    out = np.zeros((n, K, NX))
+    xo = np.empty(NX)
+    Po = np.empty((NX, NX))
+    for i in range(n):
+        if not init[i]:
+            continue
+        for k in range(K):
+            imm_present(m[i], P[i], mu[i], T[i, k], cfg, xo, False, Po)
+            for a in range(NX):
+                out[i, k, a] = xo[a]
+    return out
