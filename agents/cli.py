@@ -423,8 +423,8 @@ def _add_benchmark_commands(sub: Any) -> None:
                    help="directory of per-run episode caches, reused while the episode code equals git HEAD "
                         "(default: no cache)")
     b.add_argument("--floors", action="store_true",
-                   help="add each v1 tier's control and information floors as reference rows and a 'gap closed' "
-                        "column (agents/benchmark/floors.py; about a minute per tier)")
+                   help="add each v1 tier's control and information floors (a Leader tier's control floor) as "
+                        "reference rows and a 'gap closed' column (agents/benchmark/floors.py; a minute per tier)")
     b.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     b.set_defaults(handler=_cmd_benchmark)
 

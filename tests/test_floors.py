@@ -277,6 +277,16 @@ def test_bad_arguments():
         floors.record_episodes("Easy", [1], "NOPE")
     with pytest.raises(ValueError, match="obs has shape"):
         perfect_link.perfect_link_observation(np.zeros((2, 16)), np.zeros((2, 6)), np.zeros((2, 3)), (0, 0))
+    with pytest.raises(ValueError, match="information floor exists for the v1 tiers"):
+        floors.information_floor("Leader-Hard", [1])
+
+
+def test_a_leader_tier_has_the_control_floor_only():
+    """The control floor (a perfect link) does not depend on the target's model: a Leader tier has
+    it; the information floor (a linear filter's posterior) would be wrong there and is left out."""
+    df = floors.floor_episodes("Leader-Easy", [1, 2], controllers=["PROPOSED_KF_DOB"])
+    assert set(df["policy"]) == {floors.CONTROL_FLOOR}
+    assert (df["true_steady_mean"] < 0.05).all() and (df["tier"] == "Leader-Easy").all()
 
 
 def test_benchmark_with_floors_and_report(tmp_path):

@@ -78,20 +78,25 @@ RECORD_MAX_DISTANCE_M = 1e4
 _I = OBS_INDEX_V1
 
 
-def _check_tier(tier: object) -> str:
-    from auv_follow_env.tiers import TIERS
+def _check_tier(tier: object, information: bool = False) -> str:
+    """A tier with floors: the control floor for every v1 and Leader tier; the information floor
+    (a linear model of the target) for the v1 tiers only."""
+    from auv_follow_env.tiers import ALL_TIERS, TIERS
 
-    if not isinstance(tier, str) or tier not in TIERS:
-        raise ValueError(f"tier={tier!r} is invalid: floors exist for the v1 tiers {list(TIERS)}")
+    allowed = TIERS if information else ALL_TIERS
+    if not isinstance(tier, str) or tier not in allowed:
+        what = ("the information floor exists for the v1 tiers (a Leader tier's target has modes: its floor is "
+                "not a linear filter's)") if information else "floors exist for the v1 and Leader tiers"
+        raise ValueError(f"tier={tier!r} is invalid: {what} {list(allowed)}")
     return tier
 
 
 def _check_seeds(seeds: Iterable[int] | None, tier: str) -> list[int]:
     from agents.benchmark.protocol import check_seed_list
-    from auv_follow_env.tiers import TIERS
+    from auv_follow_env.tiers import ALL_TIERS
 
     if seeds is None:
-        return list(TIERS[tier].test_seeds)
+        return list(ALL_TIERS[tier].test_seeds)
     if isinstance(seeds, (str, bytes)) or not isinstance(seeds, Iterable):
         raise ValueError(f"seeds={seeds!r} is invalid: give a list of integers (None: the tier's published test seeds)")
     seeds = list(seeds)
@@ -584,6 +589,8 @@ def information_floor(tier: str, seeds: Iterable[int] | None = None, follower: s
     The floor's fix-noise sigma is that of a follower on the reference point (range |p_d|);
     the realised EKF uses each packet's true sigma (the follower's actual range).
     """
+    if recording is None:
+        _check_tier(tier, information=True)
     rec = recording if recording is not None else record_episodes(tier, seeds, follower, progress=progress)
     spec = rec["spec"]
     rows = []
@@ -615,12 +622,16 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
     ctrl = cf.scores.copy()
     ctrl["policy"] = CONTROL_FLOOR
     ctrl["run"] = cf.best
-    inf = information_floor(tier, seeds, follower, progress=progress)
-    info_rows = pd.DataFrame({"policy": INFORMATION_FLOOR, "run": "kalman", "seed": inf["seed"],
-                              "steps": inf["steps"], "terminated": False, "return": np.nan,
-                              "true_steady_mean": inf["expected_steady_mean"],
-                              "true_full_mean": inf["expected_full_mean"]})
-    df = pd.concat([ctrl, info_rows], ignore_index=True)
+    frames = [ctrl]
+    from auv_follow_env.tiers import TIERS
+
+    if tier in TIERS:  # (a Leader tier has the control floor only)
+        inf = information_floor(tier, seeds, follower, progress=progress)
+        frames.append(pd.DataFrame({"policy": INFORMATION_FLOOR, "run": "kalman", "seed": inf["seed"],
+                                    "steps": inf["steps"], "terminated": False, "return": np.nan,
+                                    "true_steady_mean": inf["expected_steady_mean"],
+                                    "true_full_mean": inf["expected_full_mean"]}))
+    df = pd.concat(frames, ignore_index=True)
     for m in ("full_mean", "full_rmse", "full_max", "steady_mean", "steady_rmse", "steady_max"):
         if f"true_{m}" not in df:
             df[f"true_{m}"] = np.nan

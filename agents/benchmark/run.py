@@ -25,6 +25,7 @@ from agents.benchmark.policies import (
 )
 from agents.benchmark.protocol import (
     CLASSICAL,
+    LEADER_TIERS,
     LEADERBOARD_METRICS,
     V1_TIERS,
     available_tiers,
@@ -101,7 +102,7 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
     if floors:  # reference rows, not competitors (agents/benchmark/floors.py)
         from agents.benchmark.floors import floor_episodes
 
-        frames += [floor_episodes(t, seed_map[t], progress=progress) for t in tiers if t in V1_TIERS]
+        frames += [floor_episodes(t, seed_map[t], progress=progress) for t in tiers if t in V1_TIERS + LEADER_TIERS]
     episodes = pd.concat(frames, ignore_index=True)
     board = leaderboard(episodes, n_resamples=n_resamples, seed=bootstrap_seed, progress=progress,
                         bases=residual_bases(specs),
