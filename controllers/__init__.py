@@ -16,9 +16,10 @@ from controllers.estimator import EstimatorConfig, TargetEstimator
 from controllers.hierarchical import Gains, HierarchicalController
 from controllers.pid import PIDController, PIDGains
 
-__all__ = ["CONTROLLERS", "EXTENDED_CONTROLLERS", "ALL_CONTROLLERS", "make_controller", "ScriptedPolicy",
-           "HierarchicalController", "Gains", "PIDController", "PIDGains", "TargetEstimator", "EstimatorConfig",
-           "DisturbanceObserver", "DOB_TIME_CONSTANT", "TIER_K_P", "default_gains", "thruster_model"]
+__all__ = ["CONTROLLERS", "EXTENDED_CONTROLLERS", "ALL_CONTROLLERS", "MODEL_AWARE_CONTROLLERS", "LEADER_IMM",
+           "make_controller", "ScriptedPolicy", "HierarchicalController", "Gains", "PIDController", "PIDGains",
+           "TargetEstimator", "EstimatorConfig", "DisturbanceObserver", "DOB_TIME_CONSTANT", "TIER_K_P",
+           "default_gains", "thruster_model"]
 
 #: Table 1: (delay prediction, robust terms) of the three variants of the hierarchical law
 TABLE_1: dict[str, tuple[bool, bool]] = {
@@ -44,6 +45,12 @@ CONTROLLERS: tuple[str, ...] = ("PID", "ROBUST_ONLY", "PRED_ONLY", "PROPOSED")
 #:   (:data:`LEADER_IMM`; elsewhere the IMM's defaults).
 EXTENDED_CONTROLLERS: tuple[str, ...] = ("PROPOSED_KF", "PROPOSED_KF_DOB", "MPC", "PROPOSED_IMM_DOB")
 ALL_CONTROLLERS: tuple[str, ...] = CONTROLLERS + EXTENDED_CONTROLLERS
+#: OURS: classical controllers that know a Leader tier's target generator (they run on the Leader tiers only):
+#:
+#: * ``PROPOSED_PF_DOB``: PROPOSED_KF_DOB with the *model-aware* particle filter
+#:   (:mod:`controllers._leader_pf`: the tier's modes, durations, survey pattern, lags, outlier fixes
+#:   and its published ranges as the prior) in place of the linear filter.
+MODEL_AWARE_CONTROLLERS: tuple[str, ...] = ("PROPOSED_PF_DOB",)
 #: time constant of the disturbance observer's low-pass filter [s] (ours; tuned on seeds 100-119)
 DOB_TIME_CONSTANT = 0.5
 #: outer-loop gain K_p [1/s] of PROPOSED_KF and PROPOSED_KF_DOB on the v1 tiers (ours): chosen
@@ -114,8 +121,17 @@ def make_controller(name: str, spec: TaskSpec, gains: Gains | None = None) -> Sc
         gains = gains if gains is not None else default_gains(name, spec)
         return HierarchicalController(spec, prediction=True, robust=True, gains=gains, name=name,
                                       estimator=TargetEstimator(spec, cfg), disturbance_observer=dob)
+    if name == "PROPOSED_PF_DOB":  # (the estimator refuses a task that is not a Leader tier's)
+        import dataclasses
+
+        cfg = dataclasses.replace(EstimatorConfig.for_spec(spec), model="LEADER_PF")
+        dob = DisturbanceObserver(spec.nominal, spec.dt, spec.force_limits, DOB_TIME_CONSTANT)
+        gains = gains if gains is not None else default_gains("PROPOSED_KF_DOB", spec)
+        return HierarchicalController(spec, prediction=True, robust=True, gains=gains, name=name,
+                                      estimator=TargetEstimator(spec, cfg), disturbance_observer=dob)
     if name == "MPC":
         from controllers.mpc import MPCController
 
         return MPCController(spec, name=name)
-    raise ValueError(f"controller={name!r} is unknown: valid controllers are {list(ALL_CONTROLLERS)}")
+    raise ValueError(f"controller={name!r} is unknown: valid controllers are "
+                     f"{list(ALL_CONTROLLERS + MODEL_AWARE_CONTROLLERS)}")

@@ -74,13 +74,13 @@ import numpy as np
 
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1, decode
 from auv_follow_env.params import TaskSpec
-from controllers import _imm, _ou0
+from controllers import _imm, _leader_pf, _ou0
 from controllers.base import as_batch, as_mask
 
 __all__ = ["EstimatorConfig", "TargetEstimate", "TargetEstimator", "MODELS", "propagate_mean"]
 
 #: model name -> state dimension
-MODELS: dict[str, int] = {"CV": 6, "CT": 6, "CTA": 8, "OU": 7, "OU0": 6, "IMM": 5}
+MODELS: dict[str, int] = {"CV": 6, "CT": 6, "CTA": 8, "OU": 7, "OU0": 6, "IMM": 5, "LEADER_PF": 5}
 
 #: the model used on the v1 tiers: their target's own (OU speed and turn rate) with its structure
 #: (no sway), in numba (:mod:`controllers._ou0`)
@@ -154,15 +154,21 @@ class EstimatorConfig:
     imm_q_h: float = 0.001  #: IMM: white-noise intensity on the heading (CV) [rad^2/s]
     imm_tau_s: float = 15.0  #: IMM: mean time between switches of the CV / CT models [s] (> 0)
     imm_gate: bool = True  #: IMM: a fix's position outside the 99.9 % chi-square gate of both models is not used
+    pf_particles: int = 1000  #: LEADER_PF: particles per env (the model-aware filter of a Leader tier)
+    pf_temper: float = 4.0  #: LEADER_PF: the heading, speed and turn-rate likelihoods' variances times this
+    pf_drift: float = 0.03  #: LEADER_PF: position likelihood variance added per second between fixes [m^2/s]
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
             raise ValueError(f"model={self.model!r} is invalid: must be one of {list(MODELS)}")
+        if isinstance(self.pf_particles, bool) or not isinstance(self.pf_particles, int) or not \
+                1 <= self.pf_particles <= 100_000:
+            raise ValueError(f"pf_particles={self.pf_particles!r} is invalid: must be a whole number in [1, 100000]")
         for b in ("adapt", "imm_gate"):
             if not isinstance(getattr(self, b), bool):
                 raise ValueError(f"{b}={getattr(self, b)!r} is invalid: must be True or False")
         for f in fields(self):
-            if f.name in ("model", "adapt", "imm_gate"):
+            if f.name in ("model", "adapt", "imm_gate", "pf_particles"):
                 continue
             v = getattr(self, f.name)
             inf_ok = f.name in ("tau_u", "tau_r") and self.model == "OU0" and v == math.inf
@@ -436,6 +442,35 @@ class _IMMState:
 
 
 @dataclass
+class _PFState:
+    """The particle filter's per-env arrays (:func:`controllers._leader_pf.pf_step`)."""
+
+    t_now: np.ndarray
+    odom: np.ndarray
+    vel: np.ndarray
+    init: np.ndarray
+    t_fix: np.ndarray
+    P: np.ndarray  # (N, n, NPC) particles at the newest fix's time
+    Pn: np.ndarray  # (N, n, NPC) advanced to now
+    logw: np.ndarray  # (N, n)
+    rs: np.ndarray  # (N, 1) uint64: each env's generator
+    psi_f: np.ndarray  # (N,) the follower's heading at the last step
+
+    @classmethod
+    def fresh(cls, n: int, particles: int) -> _PFState:
+        st = _leader_pf.new_state(n, particles)
+        return cls(st["t_now"], st["odom"], st["vel"], st["init"], st["t_fix"], st["P"], st["Pn"], st["logw"],
+                   st["rs"], np.zeros(n))
+
+    @property
+    def x(self) -> np.ndarray:  # (the batch size, as the other states' x)
+        return self.odom
+
+    def copy(self) -> _PFState:
+        return _PFState(*(getattr(self, f.name).copy() for f in fields(self)))
+
+
+@dataclass
 class _Peek:
     """A peek (``step(commit=False)``) kept for the commit that follows it on the same input."""
 
@@ -475,6 +510,17 @@ class TargetEstimator:
         self._taus = (self.config.tau_u, self.config.tau_r)
         self._cfg = (self._kernel_config() if self.model == "OU0" else
                      self._imm_config() if self.model == "IMM" else None)
+        self._prior = None
+        if self.model == "LEADER_PF":
+            tier = getattr(spec, "tier", None)
+            from auv_follow_env.tiers import LEADER_TIERS
+
+            if tier not in LEADER_TIERS or spec.layout != "v1":
+                raise ValueError(f"model='LEADER_PF' needs a Leader tier's task (it knows the tier's generator); got "
+                                 f"tier={tier!r}: valid tiers are {list(LEADER_TIERS)}")
+            self._cfg, self._prior = _leader_pf.pf_config(spec, tier)
+            self._cfg[_leader_pf.C_TEMPER] = self.config.pf_temper
+            self._cfg[_leader_pf.C_DRIFT] = self.config.pf_drift
         self._kstep = (_ou0.step_constants(spec.dt, self.config.tau_u, self.config.tau_r)
                        if self.model == "OU0" else None)
         self._s: _FilterState | None = None
@@ -527,6 +573,27 @@ class TargetEstimator:
                               state=np.where(valid[:, None], state, 0.0), cov=cov if with_cov else None,
                               age=out[:, _ou0.E_AGE])
 
+    def _run_pf(self, st: _PFState, obs: np.ndarray, mask: np.ndarray) -> TargetEstimate:
+        n = obs.shape[0]
+        out = np.empty((n, _leader_pf.NF))
+        _leader_pf.pf_step(obs, mask, self._cfg, self._prior, st.t_now, st.odom, st.vel, st.init, st.t_fix, st.P,
+                           st.Pn, st.logw, st.rs, out)
+        k = _leader_pf
+        valid = out[:, k.F_VALID] > 0.5
+        pf = np.arctan2(obs[:, 4], obs[:, 3])  # the follower's heading (cos_psi, sin_psi)
+        st.psi_f = pf
+        c, s = np.cos(pf), np.sin(pf)
+        ex, ey = out[:, k.F_X] - st.odom[:, 0], out[:, k.F_Y] - st.odom[:, 1]
+        rel_psi = np.arctan2(np.sin(out[:, k.F_PSI] - pf), np.cos(out[:, k.F_PSI] - pf))
+        z = np.zeros(n)
+        state = np.stack([out[:, k.F_X], out[:, k.F_Y], out[:, k.F_PSI], out[:, k.F_U], out[:, k.F_R]], axis=-1)
+        return TargetEstimate(valid=valid, x=np.where(valid, out[:, k.F_X], z), y=np.where(valid, out[:, k.F_Y], z),
+                              psi=np.where(valid, out[:, k.F_PSI], z), u=np.where(valid, out[:, k.F_U], z), v=z.copy(),
+                              r=np.where(valid, out[:, k.F_R], z), rel_x=np.where(valid, c * ex + s * ey, z),
+                              rel_y=np.where(valid, -s * ex + c * ey, z), rel_psi=np.where(valid, rel_psi, z),
+                              state=np.where(valid[:, None], state, 0.0), cov=None,
+                              age=np.where(valid, out[:, k.F_AGE], z))
+
     def _run_ou0(self, st: _OU0State, obs: np.ndarray, mask: np.ndarray, with_cov: bool) -> TargetEstimate:
         n = obs.shape[0]
         out = np.empty((n, _ou0.NE))
@@ -545,6 +612,8 @@ class TargetEstimator:
             return _OU0State.fresh(n)
         if self.model == "IMM":
             return _IMMState.fresh(n)
+        if self.model == "LEADER_PF":
+            return _PFState.fresh(n, self.config.pf_particles)
         d = self.config.dim
         return _FilterState(np.zeros(n), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n), np.zeros(n, dtype=bool),
                             np.zeros(n), np.zeros((n, d)), np.tile(np.eye(d), (n, 1, 1)))
@@ -648,7 +717,7 @@ class TargetEstimator:
         if self._s is None or self._s.x.shape[0] != n:
             mask = np.ones(n, dtype=bool)
             self._s = self._fresh(n)
-        return obs, (None if self.model in ("OU0", "IMM") else decode(obs)), mask
+        return obs, (None if self.model in ("OU0", "IMM", "LEADER_PF") else decode(obs)), mask
 
     def step(self, observation: np.ndarray, reset_mask: np.ndarray | None = None, *, commit: bool = True,
              with_cov: bool = True) -> TargetEstimate:
@@ -673,7 +742,7 @@ class TargetEstimator:
             ValueError: observation of a wrong shape, or a reset_mask of the wrong length.
         """
         obs, o, mask = self._checked(observation, reset_mask)
-        if self.model in ("OU0", "IMM"):
+        if self.model in ("OU0", "IMM", "LEADER_PF"):
             obs = np.ascontiguousarray(obs, dtype=np.float64)
         if not commit:
             st = self._s.copy()
@@ -695,6 +764,8 @@ class TargetEstimator:
             return self._run_ou0(st, obs, mask, with_cov)
         if self.model == "IMM":
             return self._run_imm(st, obs, mask, with_cov)
+        if self.model == "LEADER_PF":
+            return self._run_pf(st, obs, mask)
         self._advance(st, o, mask)
         return self._present(st, o, with_cov)
 
@@ -736,6 +807,9 @@ class TargetEstimator:
         if self.model == "OU0":  # from the present state (the filter's, without the smoothing offset)
             T = np.broadcast_to(tk[None, :], (n, K))
             X = propagate_mean(self.model, np.repeat(st.xp[:, None, :], K, axis=1), T, self._taus)
+        elif self.model == "LEADER_PF":
+            raise ValueError("trajectory() is not available for model='LEADER_PF' (the particle filter predicts the "
+                             "present only): use it with the hierarchical law (PROPOSED_PF_DOB), not the MPC")
         elif self.model == "IMM":  # the mixture's prediction from the last fix
             T = np.where(st.init, st.t_now - st.t_fix, 0.0)[:, None] + tk[None, :]
             X = _imm.imm_trajectory(st.m, st.P, st.mu, st.init, np.ascontiguousarray(T), self._cfg)

@@ -53,17 +53,19 @@ def references(env_id: str, seeds: list[int]) -> dict[str, float]:
     import gymnasium as gym
 
     from agents.benchmark import floors
-    from auv_follow_env.tiers import check_training_seeds
+    from auv_follow_env.tiers import TIERS, check_training_seeds
     from controllers import make_controller
     from controllers.evaluation import evaluate_batched
 
     check_training_seeds(seeds, name="evaluation seeds")
     spec = gym.make(env_id).unwrapped.task_spec
-    df = evaluate_batched([make_controller(n, spec) for n in BASELINES], env_id, seeds=seeds, progress=False)
-    out = {n: _iqm(df.loc[df["policy"] == n, "true_steady_mean"].to_numpy()) for n in BASELINES}
-    tier = env_id.split("-")[1]
-    inf = floors.information_floor(tier, seeds)
-    out["information floor"] = _iqm(inf["expected_steady_mean"].dropna().to_numpy())
+    tier = env_id[len("AUVFollow-"):].rsplit("-", 1)[0]
+    names = BASELINES if tier in TIERS else BASELINES + ("PROPOSED_IMM_DOB",)  # a Leader tier: the generic IMM too
+    df = evaluate_batched([make_controller(n, spec) for n in names], env_id, seeds=seeds, progress=False)
+    out = {n: _iqm(df.loc[df["policy"] == n, "true_steady_mean"].to_numpy()) for n in names}
+    if tier in TIERS:  # (a Leader tier has no information floor yet)
+        inf = floors.information_floor(tier, seeds)
+        out["information floor"] = _iqm(inf["expected_steady_mean"].dropna().to_numpy())
     return out
 
 
@@ -152,12 +154,14 @@ def main(argv: list[str] | None = None) -> int:
             label = i["run"].name
             cfg = i["cfg"]
             refs = ref_sets[tuple(i["seeds"])]
-            best = min(refs[n] for n in BASELINES)
+            best = min(v for n, v in refs.items() if n != "information floor")
+            floor = f"{refs['information floor']:.4f}" if "information floor" in refs else "- (Leader tier)"
             lines.append(f"| {label} | {env} | {i['mode']} | {cfg.get('run', {}).get('observation', '-')} "
                          f"| {int(cfg.get('steps_done', ev['steps'].iloc[-1])):,} "
                          f"| {float(cfg.get('train_seconds', 0.0)) / 60:.0f} | {y.iloc[0]:.4f} | {y.iloc[-1]:.4f} "
-                         f"| {best:.4f} | {refs['information floor']:.4f} |")
-        styles = {"PROPOSED_KF_DOB": ("k", "--"), "MPC": ("k", "-."), "information floor": ("0.45", ":")}
+                         f"| {best:.4f} | {floor} |")
+        styles = {"PROPOSED_KF_DOB": ("k", "--"), "MPC": ("k", "-."), "information floor": ("0.45", ":"),
+                  "PROPOSED_IMM_DOB": ("0.3", (0, (1, 1)))}
         for seeds, refs in ref_sets.items():
             where = f", seeds {seeds[0]}-{seeds[-1]}" if len(ref_sets) > 1 else ""
             for name, v in refs.items():

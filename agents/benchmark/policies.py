@@ -32,7 +32,8 @@ def _controllers() -> tuple[str, ...]:
     """Every registered scripted controller (the paper's four and, where present, ours)."""
     import controllers
 
-    return tuple(getattr(controllers, "ALL_CONTROLLERS", controllers.CONTROLLERS))
+    return (tuple(getattr(controllers, "ALL_CONTROLLERS", controllers.CONTROLLERS))
+            + tuple(getattr(controllers, "MODEL_AWARE_CONTROLLERS", ())))
 
 
 def _is_run(p: Path) -> bool:

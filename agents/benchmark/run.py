@@ -70,9 +70,20 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
         OutputWriteError: the files could not be written into ``out_dir`` (its previous files
             are kept).
     """
+    import controllers as ctl
+
+    tiers = [resolve_tier(t)[0] for t in ([tiers] if isinstance(tiers, str) else tiers)]
+    leader = "+".join(t for t in tiers if t in LEADER_TIERS)
     items: list[Any] = []
     for p in (list(policies) if policies is not None else [CLASSICAL]):
-        items.extend(_controllers() if p == CLASSICAL else [p])
+        if p != CLASSICAL:
+            items.append(p)
+            continue
+        for name in _controllers():  # a model-aware controller: on the Leader tiers benchmarked only
+            if name not in ctl.MODEL_AWARE_CONTROLLERS:
+                items.append(name)
+            elif leader:
+                items.append(f"{name}@{leader}")
     specs = [parse_policy(p) for p in items]
     if not specs:
         raise ValueError("policies is empty: give at least one controller name or run directory")
@@ -86,7 +97,6 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
         raise ValueError(f"n_resamples={n_resamples!r} is invalid: must be an integer in [1, {MAX_RESAMPLES}]")
     if isinstance(bootstrap_seed, bool) or not isinstance(bootstrap_seed, (int, np.integer)) or bootstrap_seed < 0:
         raise ValueError(f"bootstrap_seed={bootstrap_seed!r} is invalid: must be an integer >= 0")
-    tiers = [resolve_tier(t)[0] for t in ([tiers] if isinstance(tiers, str) else tiers)]
     if not tiers:
         raise ValueError(f"tiers is empty: give at least one of {available_tiers()}")
     seed_map: dict[str, list[int]] = {}
