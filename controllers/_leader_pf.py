@@ -500,3 +500,22 @@ def pf_config(spec, tier: str | None = None, fields: dict | None = None) -> tupl
              ("leader_uturn_rate", 0.25)]
     prior = np.array([rng(nm, d) for nm, d in names], dtype=np.float64)
     return cfg, prior
+
+
+@njit(cache=True)
+def particle_trace(cfg, prior, n, steps, seed):
+    """n particles from the prior at a fix at the origin, advanced ``steps`` control steps by the
+    particles' generator (for the test that it is the kernel's): (steps + 1, n, 3) mode, speed and
+    turn rate held."""
+    rs = np.empty(1, dtype=np.uint64)
+    rs[0] = np.uint64(seed)
+    z = np.zeros(5)
+    p = np.empty(NPC)
+    out = np.empty((steps + 1, n, 3))
+    for i in range(n):
+        _init_particle(p, prior, cfg, z, rs)
+        out[0, i, 0], out[0, i, 1], out[0, i, 2] = p[MODE], p[U], p[R]
+        for k in range(steps):
+            _step(p, cfg, rs)
+            out[k + 1, i, 0], out[k + 1, i, 1], out[k + 1, i, 2] = p[MODE], p[U], p[R]
+    return out

@@ -200,3 +200,27 @@ def test_outlier_fixes_come_at_the_set_share_with_student_t_errors():
     got = np.mean(off > 1e-3)
     assert abs(got - share) < 4 * math.sqrt(share * (1 - share) / n), got
     assert abs(np.median(off[off > 1e-3]) / 0.664 - 1.0) < 0.15
+
+
+def test_the_particle_filters_generator_is_the_kernels():
+    """The model-aware filter carries its own copy of the generator (per-particle draws); run
+    from the same settings, its mode durations and jump shares match the kernel's leader_trace
+    within sampling error (means 8 / 4 / 6 / 3 s; jumps from cruise 0.3 / 0.3 / 0.2 / 0.2)."""
+    from controllers import _leader_pf as pf
+
+    fields = dict(leader_modes=2.0, leader_cruise_mean_s=8.0, leader_turn_mean_s=4.0, leader_loiter_mean_s=6.0,
+                  leader_sprint_mean_s=3.0)
+    cfg, prior = pf.pf_config(make_config("S4").task_spec(), fields=fields)
+    tr = pf.particle_trace(cfg, prior, 300, 6000, 7)
+    kern = dyn.leader_trace(_rows(300, **fields), np.arange(1, 301, dtype=np.int64), 6000)
+    for got in (tr, kern):
+        runs = _runs(got[:, :, 0], np.zeros_like(got[:, :, 0]))
+        for mode, mean in ((dyn.LD_CRUISE, 8.0), (dyn.LD_TURN_L, 4.0), (dyn.LD_LOITER, 6.0), (dyn.LD_SPRINT, 3.0)):
+            d = np.array([length for m, length, _, _ in runs if m == mode]) * DT
+            assert abs(d.mean() / mean - 1.0) < 0.04, (mode, d.mean())
+        nxt = np.array([n for m, _, _, n in runs if m == dyn.LD_CRUISE])
+        assert abs(np.mean(nxt == dyn.LD_LOITER) - 0.2) < 0.03
+    # the speeds and rates held: the same law (cruise 0.5 m/s by default, turns at +-0.15 rad/s)
+    for got, col in ((tr, 1), (kern, 2)):
+        cruise = got[200:, :, 0] == dyn.LD_CRUISE
+        assert abs(np.median(got[200:, :, col][cruise]) - 0.5) < 0.02
