@@ -295,3 +295,39 @@ def test_run_records_where_its_wall_clock_went(tmp_path):
     assert abs(sum(ph.values()) - cfg["result"]["wall_clock_s"]) < 0.02
     assert cfg["threads"]["torch"] == 2
 
+
+
+def test_bounds_loss_pulls_a_saturated_mean_back_inside_the_action_box():
+    """A mean beyond the env's box [-1, 1] is clipped by the env, so PPO's own gradient cannot move
+    it; with bounds_loss_coef the loss gains c * sum relu(|mu| - 1)^2: with zero advantages and
+    returns equal to the values (no other gradient) updates bring a yaw mean of 1.5 back to 1
+    and leave a mean inside the box alone."""
+    import torch
+
+    from agents.training.batched_ppo import BatchedPPO, _build_net, _policy_kwargs, _update
+
+    torch.manual_seed(0)
+    net = _build_net(6, _policy_kwargs({}))
+    with torch.no_grad():
+        net.actor[-1].weight.zero_()
+        net.actor[-1].bias.copy_(torch.tensor([0.5, 0.0, 1.5]))
+        for p in net.critic.parameters():
+            p.zero_()
+    opt = torch.optim.Adam(net.parameters(), lr=0.05)
+    T, N = 4, 16
+    obs = torch.randn(T, N, 6).numpy()
+    act = np.zeros((T, N, 3), dtype=np.float32)
+    with torch.no_grad():
+        mean = net.mean(torch.from_numpy(obs))
+        std = torch.exp(net.log_std)
+        logp = (-0.5 * ((torch.from_numpy(act) - mean) / std) ** 2 - torch.log(std)
+                - 0.5 * np.log(2 * np.pi)).sum(-1).numpy()
+    hp = {**BatchedPPO().__dict__, "batch_size": 64, "n_epochs": 1, "bounds_loss_coef": 1.0}
+    zeros = np.zeros((T, N), dtype=np.float32)
+    for _ in range(60):
+        _update(net, opt, hp, obs, None, np.zeros((T, N), bool), act, logp, zeros, zeros, np.ones((T, N), bool),
+                None, -5.0)
+    with torch.no_grad():
+        m = net.mean(torch.from_numpy(obs)).numpy()
+    assert np.all(np.abs(m[..., 2]) < 1.05)
+    np.testing.assert_allclose(m[..., 0], 0.5, atol=0.05)

@@ -180,7 +180,7 @@ _NUMERIC_BOUNDS: dict[str, tuple[float, bool, float]] = {
     "stats_window_size": (1, True, math.inf), "torch_threads": (1, True, 64), "n_eval_seeds": (1, True, 10_000),
     "obs_norm_window": (0, True, math.inf),
     "reward_norm_window": (0, True, math.inf), "action_rate_coef": (0, True, math.inf),
-    "heading_coef": (0, True, math.inf),
+    "heading_coef": (0, True, math.inf), "bounds_loss_coef": (0, True, math.inf),
     "action_filter": (0, False, 1), "distill_steps": (0, True, math.inf)}
 
 
