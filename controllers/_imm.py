@@ -180,6 +180,30 @@ def _solve_sym(S, n, Sinv):
 
 
 @njit(cache=True)
+def _interact_predict(m, P, mu, T, cfg, with_cov):
+    """The IMM's interaction over T and both models' predictions: the predicted mode probabilities
+    c (2,), means mp (2, 5) and (if ``with_cov``) covariances Pp (2, 5, 5)."""
+    qc = np.zeros((2, NX))
+    qc[0, 2] = cfg[C_QH]
+    qc[0, 3] = cfg[C_QU]
+    qc[1, 3] = cfg[C_QU]
+    qc[1, 4] = cfg[C_QR]
+    c = np.empty(2)
+    x0 = np.empty((2, NX))
+    P0 = np.empty((2, NX, NX))
+    _mix(m, P, mu, T, cfg[C_TS], c, x0, P0, with_cov)
+    mp = np.empty((2, NX))
+    Pp = np.empty((2, NX, NX))
+    tmp5, J, Jh, tmpm = np.empty(NX), np.empty((NX, NX)), np.empty((NX, NX)), np.empty((NX, NX))
+    for j in range(2):
+        if with_cov:
+            _predict(x0[j], P0[j], T, j == 1, qc[j], mp[j], Pp[j], tmp5, J, Jh, tmpm)
+        else:
+            _prop(x0[j], T, j == 1, mp[j], J)
+    return c, mp, Pp
+
+
+@njit(cache=True)
 def imm_init(m, P, mu, z, var):
     """Start both models at the fix z (5,) with variances var (5,); CV's turn rate at 0."""
     for j in range(2):
@@ -235,20 +259,7 @@ def imm_update(m, P, mu, ng, T, z, var, cfg):
     """One fix z (5,) with variances var (5,), T seconds after the filter's last: interaction,
     prediction of both models, gating, update and the new mode probabilities (all in place).
     Returns True if the fix's position was gated out."""
-    qc = np.zeros((2, NX))
-    qc[0, 2] = cfg[C_QH]
-    qc[0, 3] = cfg[C_QU]
-    qc[1, 3] = cfg[C_QU]
-    qc[1, 4] = cfg[C_QR]
-    c = np.empty(2)
-    x0 = np.empty((2, NX))
-    P0 = np.empty((2, NX, NX))
-    _mix(m, P, mu, T, cfg[C_TS], c, x0, P0, True)
-    mp = np.empty((2, NX))
-    Pp = np.empty((2, NX, NX))
-    tmp5, J, Jh, tmpm = np.empty(NX), np.empty((NX, NX)), np.empty((NX, NX)), np.empty((NX, NX))
-    for j in range(2):
-        _predict(x0[j], P0[j], T, j == 1, qc[j], mp[j], Pp[j], tmp5, J, Jh, tmpm)
+    c, mp, Pp = _interact_predict(m, P, mu, T, cfg, True)
     nu = np.empty((2, NX))
     for j in range(2):
         for a in range(NX):
@@ -325,23 +336,7 @@ def imm_present(m, P, mu, T, cfg, out_x, with_cov, out_P):
     """The present state T seconds after the last fix: the models' predictions weighted by the
     predicted mode probabilities; the heading as the weighted circular mean. out_x (5,); the
     mixture covariance into out_P (5, 5) if ``with_cov``."""
-    qc = np.zeros((2, NX))
-    qc[0, 2] = cfg[C_QH]
-    qc[0, 3] = cfg[C_QU]
-    qc[1, 3] = cfg[C_QU]
-    qc[1, 4] = cfg[C_QR]
-    c = np.empty(2)
-    x0 = np.empty((2, NX))
-    P0 = np.empty((2, NX, NX))
-    _mix(m, P, mu, T, cfg[C_TS], c, x0, P0, with_cov)
-    mp = np.empty((2, NX))
-    Pp = np.empty((2, NX, NX))
-    tmp5, J, Jh, tmpm = np.empty(NX), np.empty((NX, NX)), np.empty((NX, NX)), np.empty((NX, NX))
-    for j in range(2):
-        if with_cov:
-            _predict(x0[j], P0[j], T, j == 1, qc[j], mp[j], Pp[j], tmp5, J, Jh, tmpm)
-        else:
-            _prop(x0[j], T, j == 1, mp[j], J)
+    c, mp, Pp = _interact_predict(m, P, mu, T, cfg, with_cov)
     sx, sy = 0.0, 0.0
     for a in range(NX):
         out_x[a] = 0.0
