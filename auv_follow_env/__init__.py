@@ -29,9 +29,10 @@ _ENTRY = "auv_follow_env.env:AUVFollowEnv"
 _VECTOR_ENTRY = "auv_follow_env.vector_env:AUVFollowVectorEnv"
 
 ENV_IDS: tuple[str, ...] = tuple(f"AUVFollow-{s}-v0" for s in SCENARIOS) + ("AUVFollow-v0",)
-ENV_IDS_V1: tuple[str, ...] = tuple(t.env_id for t in TIERS.values()) + ("AUVFollow-v1",)
 #: the Leader tiers' ids (targets with hidden manoeuvre modes and outlier fixes)
 ENV_IDS_LEADER: tuple[str, ...] = tuple(t.env_id for t in LEADER_TIERS.values())
+#: every v1 id (the v1 observation and link): the OU tiers, the Leader tiers and the custom AUVFollow-v1
+ENV_IDS_V1: tuple[str, ...] = tuple(t.env_id for t in TIERS.values()) + ENV_IDS_LEADER + ("AUVFollow-v1",)
 
 for _name in SCENARIOS:
     if f"AUVFollow-{_name}-v0" not in registry:
