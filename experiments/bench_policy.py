@@ -38,7 +38,7 @@ import numba
 import numpy as np
 
 import auv_follow_env  # noqa: F401  (registers the ids)
-from controllers import ALL_CONTROLLERS, make_controller
+from controllers import ALL_CONTROLLERS, MODEL_AWARE_CONTROLLERS, make_controller
 from controllers.evaluation import evaluate_batched
 from experiments.outputs import output_path, write_report
 
@@ -61,7 +61,7 @@ def parse_args(argv: list[str] | None = None) -> Args:
     p.add_argument("--episode-s", type=float, default=Args.episode_s, help="episode length [s] (default %(default)s)")
     p.add_argument("--repeats", type=int, default=Args.repeats, help="interleaved repeats (default %(default)s)")
     p.add_argument("--env-id", default=Args.env_id, help="AUVFollow id, v0 or v1 (default %(default)s)")
-    p.add_argument("--controller", default=Args.controller, choices=ALL_CONTROLLERS,
+    p.add_argument("--controller", default=Args.controller, choices=ALL_CONTROLLERS + MODEL_AWARE_CONTROLLERS,
                    help="scripted controller in the loop (default %(default)s)")
     p.add_argument("--out", type=Path, default=None,
                    help="Markdown output file (default: results/bench_policy.md; results/tmp/ with non-default "
