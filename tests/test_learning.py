@@ -331,3 +331,21 @@ def test_bounds_loss_pulls_a_saturated_mean_back_inside_the_action_box():
         m = net.mean(torch.from_numpy(obs)).numpy()
     assert np.all(np.abs(m[..., 2]) < 1.05)
     np.testing.assert_allclose(m[..., 0], 0.5, atol=0.05)
+
+
+def test_yaw_rate_term_is_the_squared_yaw_rate_of_the_observation():
+    """yaw_rate_coef's penalty reads the follower's yaw rate from the raw observation (field r):
+    a spin at 5 rad/s costs 25 c per step, a straight course nothing; recorded in config.yaml."""
+    from agents.training.batched_ppo import _yaw_rate_penalty
+    from auv_follow_env.layout import OBS_DIM_V1, OBS_INDEX
+
+    raw = np.zeros((3, OBS_DIM_V1))
+    raw[:, OBS_INDEX["r"]] = [5.0, -0.2, 0.0]
+    raw[:, OBS_INDEX["u"]] = 1.0  # other fields do not count
+    np.testing.assert_allclose(_yaw_rate_penalty(raw), [25.0, 0.04, 0.0])
+
+
+def test_yaw_rate_option_trains_and_is_recorded(tmp_path):
+    _tiny_bppo(tmp_path, "--hp", "yaw_rate_coef=0.05")
+    cfg = yaml.safe_load((tmp_path / "r" / "config.yaml").read_text())
+    assert cfg["training"]["yaw_rate_coef"] == 0.05

@@ -44,7 +44,9 @@ the term, privileged like the env's own reward, asks for the paper's heading). `
 c adds c sum_j relu(|mu_j| - 1)^2 to the PPO loss (mu: the policy's mean action): a mean beyond the
 env's box [-1, 1] is clipped by the env, so moving it changes nothing the env sees and PPO's
 gradient cannot bring it back; longer Medium and Hard runs ended with the yaw moment's mean at
-1.3-1.6 (std 0.05), spinning at 5.8 rad/s whatever the heading term asked.
+1.3-1.6 (std 0.05), spinning at 5.8 rad/s whatever the heading term asked. ``yaw_rate_coef`` c
+adds -c r^2 with the follower's own yaw rate r [rad/s] (field ``r`` of the observation): a
+penalty that grows with the spin itself, on every step.
 
 **Residuals: use ``gae_lambda=1``.** With lambda < 1 the advantage bootstraps from the critic's
 value of the *next* state, which the action moves; early on the critic is poor and its errors,
@@ -139,7 +141,8 @@ class BatchedPPO:
                  random_phase: bool = True, n_eval_seeds: int = 32, lr_schedule: str = "linear",
                  obs_norm_window: int = 1_000_000, reward_norm_window: int = 1_000_000, teacher: str | None = None,
                  teacher_link: str = "perfect", distill_steps: int = 0, action_rate_coef: float = 0.0,
-                 action_filter: float = 1.0, heading_coef: float = 0.0, bounds_loss_coef: float = 0.0) -> None:
+                 action_filter: float = 1.0, heading_coef: float = 0.0, bounds_loss_coef: float = 0.0,
+                 yaw_rate_coef: float = 0.0) -> None:
         self.__dict__.update({k: v for k, v in locals().items() if k != "self"})
 
 
@@ -262,6 +265,7 @@ def check_bppo_hyperparams(hp: dict[str, Any], n_envs: int | None = None) -> Non
     _real("hyperparameter action_rate_coef", hp.get("action_rate_coef", 0.0), 0.0, math.inf)
     _real("hyperparameter heading_coef", hp.get("heading_coef", 0.0), 0.0, math.inf)
     _real("hyperparameter bounds_loss_coef", hp.get("bounds_loss_coef", 0.0), 0.0, math.inf)
+    _real("hyperparameter yaw_rate_coef", hp.get("yaw_rate_coef", 0.0), 0.0, math.inf)
     from agents.training.batched_obs import check_action_filter
 
     try:
@@ -605,6 +609,13 @@ def _phase_seconds(env: Any, phase: dict[str, float], elapsed: float) -> dict[st
     return {k: round(float(v), 3) for k, v in parts.items()}
 
 
+def _yaw_rate_penalty(raw: np.ndarray) -> np.ndarray:
+    """r^2 per env [rad^2/s^2]: the follower's yaw rate (field ``r`` of the raw observation), squared."""
+    from auv_follow_env.layout import OBS_INDEX
+
+    return np.square(np.asarray(raw, dtype=np.float64)[:, OBS_INDEX["r"]])
+
+
 def _heading_penalty(info: dict[str, Any], n: int) -> np.ndarray:
     """1 - cos(psi_ref - psi) per env (0 when the follower holds the reference heading, 2 when it
     faces the opposite way), from the env's true present reference and the follower's pose
@@ -667,7 +678,8 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                             "action_rate_coef": float(hp["action_rate_coef"]),
                             "heading_coef": float(hp["heading_coef"]),
                             "action_filter": float(hp["action_filter"]),
-                            "bounds_loss_coef": float(hp["bounds_loss_coef"])}
+                            "bounds_loss_coef": float(hp["bounds_loss_coef"]),
+                            "yaw_rate_coef": float(hp["yaw_rate_coef"])}
     start_steps = 0
     if cfg.resume_from is not None:
         data = _load_model_file(Path(cfg.resume_from))
@@ -748,6 +760,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
         write_yaml(run / "config.yaml", resolved)
 
     rate_coef, heading_coef = float(hp["action_rate_coef"]), float(hp["heading_coef"])
+    yaw_coef = float(hp["yaw_rate_coef"])
     prev_exec = np.zeros((n_envs, 3))  # the env action of each env's previous step (in [-1, 1])
     limits = np.asarray(env.spec.force_limits, dtype=np.float64)
     teacher, distill_steps = _make_teacher(hp, env), int(hp["distill_steps"])
@@ -825,6 +838,8 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                         rew = rew - rate_coef * np.sum(change * change, axis=1)
                     if heading_coef > 0.0:  # the heading term: -c (1 - cos(psi_ref - psi)), true present psi_ref
                         rew = rew - heading_coef * _heading_penalty(info, n_envs)
+                    if yaw_coef > 0.0:  # the yaw-rate term: -c r^2, the follower's own measured yaw rate [rad/s]
+                        rew = rew - yaw_coef * _yaw_rate_penalty(env.raw)
                     done = term | trunc
                     if norm_rew:
                         ret_acc = ret_acc * rgamma + rew

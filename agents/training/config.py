@@ -181,6 +181,7 @@ _NUMERIC_BOUNDS: dict[str, tuple[float, bool, float]] = {
     "obs_norm_window": (0, True, math.inf),
     "reward_norm_window": (0, True, math.inf), "action_rate_coef": (0, True, math.inf),
     "heading_coef": (0, True, math.inf), "bounds_loss_coef": (0, True, math.inf),
+    "yaw_rate_coef": (0, True, math.inf),
     "action_filter": (0, False, 1), "distill_steps": (0, True, math.inf)}
 
 
