@@ -44,19 +44,10 @@ from controllers._ou0 import (
     E_X,
     E_Y,
     NE,
-    O_AGE,
-    O_C,
-    O_DX,
-    O_DY,
-    O_HAS,
-    O_NEW,
-    O_S,
-    O_TC,
-    O_TR,
-    O_TS,
-    O_TU,
-    O_U,
-    O_V,
+    advance_odometry,
+    fix_measurement,
+    fix_timing,
+    follower_motion,
 )
 
 # config vector (float64) indices
@@ -394,11 +385,7 @@ def imm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng
     xo = np.empty(NX)
     Po = np.empty((NX, NX))
     for i in range(n):
-        pf = math.atan2(obs[i, O_S], obs[i, O_C])
-        c = math.cos(pf)
-        s = math.sin(pf)
-        vx = c * obs[i, O_U] - s * obs[i, O_V]
-        vy = s * obs[i, O_U] + c * obs[i, O_V]
+        pf, c, s, vx, vy = follower_motion(obs, i)
         if reset[i]:
             odom[i, 0] = 0.0
             odom[i, 1] = 0.0
@@ -406,27 +393,13 @@ def imm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng
             init[i] = False
             ng[i, 0] = 0
         else:
-            odom[i, 0] += 0.5 * dt * (vel[i, 0] + vx)
-            odom[i, 1] += 0.5 * dt * (vel[i, 1] + vy)
-            t_now[i] += dt
+            advance_odometry(odom, vel, t_now, i, vx, vy, dt)
         vel[i, 0] = vx
         vel[i, 1] = vy
         psi_f[i] = pf
-        if v1:
-            fresh = obs[i, O_HAS] > 0.5 and (obs[i, O_NEW] > 0.5 or not init[i])
-            t_meas = t_now[i] - obs[i, O_AGE]
-        else:
-            fresh = True
-            t_meas = t_now[i] - cfg[C_TAU]
-        if fresh and init[i] and not (t_meas > t_fix[i] + 1e-6):
-            fresh = False
+        fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, cfg[C_TAU])
         if fresh:
-            dx, dy = obs[i, O_DX], obs[i, O_DY]
-            z[0] = odom[i, 0] + c * dx - s * dy
-            z[1] = odom[i, 1] + s * dx + c * dy
-            z[2] = pf + math.atan2(obs[i, O_TS], obs[i, O_TC])
-            z[3] = obs[i, O_TU]
-            z[4] = obs[i, O_TR]
+            dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
             _fix_variances(cfg, dx, dy, var)
             if init[i]:
                 z[2] = m[i, 0, 2] + _wrap(z[2] - m[i, 0, 2])  # the heading on the filter's branch

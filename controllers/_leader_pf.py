@@ -25,7 +25,7 @@ import math
 import numpy as np
 from numba import njit
 
-from controllers._ou0 import O_AGE, O_C, O_DX, O_DY, O_HAS, O_NEW, O_S, O_TC, O_TR, O_TS, O_TU, O_U, O_V
+from controllers._ou0 import advance_odometry, fix_measurement, fix_timing, follower_motion
 
 # particle columns
 X, Y, PSI, MODE, SIDE, PROG, THR, UB, RB, WU, WR, U, R = range(13)
@@ -331,37 +331,23 @@ def pf_step(obs, reset, cfg, prior, t_now, odom, vel, init, t_fix, P, Pn, logw, 
     dt = cfg[C_DT]
     z = np.empty(5)
     for e in range(N):
-        ob = obs[e]
         r_ = rs[e]
-        pf = math.atan2(ob[O_S], ob[O_C])
-        c, s = math.cos(pf), math.sin(pf)
-        vx = c * ob[O_U] - s * ob[O_V]
-        vy = s * ob[O_U] + c * ob[O_V]
+        pf, c, s, vx, vy = follower_motion(obs, e)
         if reset[e]:
             odom[e, 0] = 0.0
             odom[e, 1] = 0.0
             t_now[e] = 0.0
             init[e] = False
-            r_[0] = _seed_from(ob)
+            r_[0] = _seed_from(obs[e])
         else:
-            odom[e, 0] += 0.5 * dt * (vel[e, 0] + vx)
-            odom[e, 1] += 0.5 * dt * (vel[e, 1] + vy)
-            t_now[e] += dt
+            advance_odometry(odom, vel, t_now, e, vx, vy, dt)
             if init[e]:
                 for i in range(n):
                     _step(Pn[e, i], cfg, r_)
         vel[e, 0], vel[e, 1] = vx, vy
-        fresh = ob[O_HAS] > 0.5 and (ob[O_NEW] > 0.5 or not init[e])
-        t_meas = t_now[e] - ob[O_AGE]
-        if fresh and init[e] and not (t_meas > t_fix[e] + 1e-6):
-            fresh = False
+        fresh, t_meas = fix_timing(obs, e, t_now[e], init[e], t_fix[e], True, 0.0)
         if fresh:
-            dx, dy = ob[O_DX], ob[O_DY]
-            z[0] = odom[e, 0] + c * dx - s * dy
-            z[1] = odom[e, 1] + s * dx + c * dy
-            z[2] = pf + math.atan2(ob[O_TS], ob[O_TC])
-            z[3] = ob[O_TU]
-            z[4] = ob[O_TR]
+            dx, dy = fix_measurement(obs, e, odom, pf, c, s, z)
             sig = cfg[C_SPOS] + cfg[C_SPM] * math.sqrt(dx * dx + dy * dy)
             span = 0.0
             if not init[e]:

@@ -288,6 +288,53 @@ def _noise(cfg, stats, i, prior_qu, prior_qr):
     return 2.0 * vu / tu, 2.0 * vr / tr
 
 
+@njit(cache=True, inline="always")
+def follower_motion(obs, i):
+    """(psi_f, cos psi_f, sin psi_f, vx, vy): the follower's heading and inertial ground velocity
+    from observation row i (shared by the target filters' odometry frames)."""
+    pf = math.atan2(obs[i, O_S], obs[i, O_C])
+    c = math.cos(pf)
+    s = math.sin(pf)
+    return pf, c, s, c * obs[i, O_U] - s * obs[i, O_V], s * obs[i, O_U] + c * obs[i, O_V]
+
+
+@njit(cache=True, inline="always")
+def advance_odometry(odom, vel, t_now, i, vx, vy, dt):
+    """One control step of env i's odometry frame: the trapezoid rule on the ground velocity."""
+    odom[i, 0] += 0.5 * dt * (vel[i, 0] + vx)
+    odom[i, 1] += 0.5 * dt * (vel[i, 1] + vy)
+    t_now[i] += dt
+
+
+@njit(cache=True, inline="always")
+def fix_timing(obs, i, t_now, initialised, t_fix, v1, tau):
+    """(fresh, t_meas): whether observation row i carries a fix newer than the filter's (v1: a new
+    packet, or the held one before the first; v0: a fix ``tau`` old every step; a fix not newer
+    than ``t_fix`` is stale or out of order) and its measurement time."""
+    if v1:
+        fresh = obs[i, O_HAS] > 0.5 and (obs[i, O_NEW] > 0.5 or not initialised)
+        t_meas = t_now - obs[i, O_AGE]
+    else:
+        fresh = True
+        t_meas = t_now - tau
+    if fresh and initialised and not (t_meas > t_fix + 1e-6):
+        fresh = False
+    return fresh, t_meas
+
+
+@njit(cache=True, inline="always")
+def fix_measurement(obs, i, odom, pf, c, s, z):
+    """The fix of observation row i in env i's odometry frame into z (5,): x, y, heading, surge
+    speed, turn rate; returns its offset (dx, dy) in the follower's body frame."""
+    dx, dy = obs[i, O_DX], obs[i, O_DY]
+    z[0] = odom[i, 0] + c * dx - s * dy
+    z[1] = odom[i, 1] + s * dx + c * dy
+    z[2] = pf + math.atan2(obs[i, O_TS], obs[i, O_TC])
+    z[3] = obs[i, O_TU]
+    z[4] = obs[i, O_TR]
+    return dx, dy
+
+
 @njit(cache=True)
 def ou0_step(obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P, xp, Pp, stale, dlt, stats, out,
              cov_out):
@@ -320,11 +367,7 @@ def ou0_step(obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P,
     var = np.empty(5)
     old = np.empty(3)
     for i in range(n):
-        pf = math.atan2(obs[i, O_S], obs[i, O_C])
-        c = math.cos(pf)
-        s = math.sin(pf)
-        vx = c * obs[i, O_U] - s * obs[i, O_V]
-        vy = s * obs[i, O_U] + c * obs[i, O_V]
+        pf, c, s, vx, vy = follower_motion(obs, i)
         if reset[i]:
             odom[i, 0] = 0.0
             odom[i, 1] = 0.0
@@ -335,9 +378,7 @@ def ou0_step(obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P,
             for j in range(NS):
                 stats[i, j] = 0.0
         else:
-            odom[i, 0] += 0.5 * dt * (vel[i, 0] + vx)
-            odom[i, 1] += 0.5 * dt * (vel[i, 1] + vy)
-            t_now[i] += dt
+            advance_odometry(odom, vel, t_now, i, vx, vy, dt)
             # the present advances one control step (and the smoothing offset decays)
             if init[i]:
                 if want_cov and not stale[i]:
@@ -352,22 +393,9 @@ def ou0_step(obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P,
         vel[i, 1] = vy
         psi_f[i] = pf
         # a newer fix?
-        if v1:
-            fresh = obs[i, O_HAS] > 0.5 and (obs[i, O_NEW] > 0.5 or not init[i])
-            t_meas = t_now[i] - obs[i, O_AGE]
-        else:
-            fresh = True
-            t_meas = t_now[i] - cfg[C_TAU]
-        if fresh and init[i] and not (t_meas > t_fix[i] + 1e-6):
-            fresh = False  # stale or out of order
+        fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, cfg[C_TAU])
         if fresh:
-            dx, dy = obs[i, O_DX], obs[i, O_DY]
-            psi_t = pf + math.atan2(obs[i, O_TS], obs[i, O_TC])
-            z[0] = odom[i, 0] + c * dx - s * dy
-            z[1] = odom[i, 1] + s * dx + c * dy
-            z[2] = psi_t
-            z[3] = obs[i, O_TU]
-            z[4] = obs[i, O_TR]
+            dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
             sp = cfg[C_SPOS] + cfg[C_SPM] * math.sqrt(dx * dx + dy * dy)
             var[0] = sp * sp
             var[1] = sp * sp

@@ -487,6 +487,17 @@ def _copy_estimate(e: TargetEstimate) -> TargetEstimate:
                              for f in fields(e)})
 
 
+def _kernel_estimate(out: np.ndarray, state: np.ndarray, cov: np.ndarray | None) -> TargetEstimate:
+    """A :class:`TargetEstimate` from a numba filter's output rows (the OU0 kernel's columns E_*;
+    the IMM writes the same) and its present state (N, n); no sway (v = 0)."""
+    k = _ou0
+    valid = out[:, k.E_VALID] > 0.5
+    return TargetEstimate(valid=valid, x=out[:, k.E_X], y=out[:, k.E_Y], psi=out[:, k.E_PSI], u=out[:, k.E_U],
+                          v=np.zeros(out.shape[0]), r=out[:, k.E_R], rel_x=out[:, k.E_RX], rel_y=out[:, k.E_RY],
+                          rel_psi=out[:, k.E_RPSI], state=np.where(valid[:, None], state, 0.0), cov=cov,
+                          age=out[:, k.E_AGE])
+
+
 class TargetEstimator:
     """Batched target Kalman filter over N envs; see the module docstring.
 
@@ -564,14 +575,9 @@ class TargetEstimator:
         cov = np.empty((n if with_cov else 0, 5, 5))
         _imm.imm_step(obs, mask, self._cfg, st.t_now, st.odom, st.vel, st.psi_f, st.init, st.t_fix, st.m, st.P,
                       st.mu, st.ng, out, cov)
-        valid = out[:, _ou0.E_VALID] > 0.5
         state = np.stack([out[:, _ou0.E_X], out[:, _ou0.E_Y], out[:, _ou0.E_PSI], out[:, _ou0.E_U],
                           out[:, _ou0.E_R]], axis=-1)
-        return TargetEstimate(valid=valid, x=out[:, _ou0.E_X], y=out[:, _ou0.E_Y], psi=out[:, _ou0.E_PSI],
-                              u=out[:, _ou0.E_U], v=np.zeros(n), r=out[:, _ou0.E_R], rel_x=out[:, _ou0.E_RX],
-                              rel_y=out[:, _ou0.E_RY], rel_psi=out[:, _ou0.E_RPSI],
-                              state=np.where(valid[:, None], state, 0.0), cov=cov if with_cov else None,
-                              age=out[:, _ou0.E_AGE])
+        return _kernel_estimate(out, state, cov if with_cov else None)
 
     def _run_pf(self, st: _PFState, obs: np.ndarray, mask: np.ndarray) -> TargetEstimate:
         n = obs.shape[0]
@@ -600,12 +606,7 @@ class TargetEstimator:
         cov = np.empty((n if with_cov else 0, 6, 6))
         _ou0.ou0_step(obs, mask, self._cfg, self._kstep, st.t_now, st.odom, st.vel, st.psi_f, st.init, st.t_fix,
                       st.x, st.P, st.xp, st.Pp, st.stale, st.dlt, st.stats, out, cov)
-        valid = out[:, _ou0.E_VALID] > 0.5
-        return TargetEstimate(valid=valid, x=out[:, _ou0.E_X], y=out[:, _ou0.E_Y], psi=out[:, _ou0.E_PSI],
-                              u=out[:, _ou0.E_U], v=np.zeros(n), r=out[:, _ou0.E_R], rel_x=out[:, _ou0.E_RX],
-                              rel_y=out[:, _ou0.E_RY], rel_psi=out[:, _ou0.E_RPSI],
-                              state=np.where(valid[:, None], st.xp, 0.0), cov=cov if with_cov else None,
-                              age=out[:, _ou0.E_AGE])
+        return _kernel_estimate(out, st.xp, cov if with_cov else None)
 
     def _fresh(self, n: int):
         if self.model == "OU0":
