@@ -79,7 +79,8 @@ def test_both_normalisers_forget_by_default_and_the_run_records_it(tmp_path):
 OPTIONS = {"plain": [], "linear_skip": ["--hp", "policy_kwargs=dict(linear_skip=True)"],
            "recurrent": ["--hp", "policy_kwargs=dict(recurrent=True, gru_size=8)"],
            "privileged_critic": ["--hp", "policy_kwargs=dict(privileged_critic=True, linear_skip=True)"],
-           "action_filter": ["--hp", "action_filter=0.5", "--hp", "policy_kwargs=dict(linear_skip=True)"]}
+           "action_filter": ["--hp", "action_filter=0.5", "--hp", "policy_kwargs=dict(linear_skip=True)"],
+           "squash": ["--hp", "policy_kwargs=dict(squash=True, linear_skip=True)"]}
 
 
 @pytest.mark.parametrize("option", list(OPTIONS))
@@ -114,6 +115,8 @@ def test_predict_equals_the_training_time_actor(tmp_path, option):
             mean, _ = net.heads(x, torch.zeros(3, net.priv) if net.priv else None)
             if net.skip is not None:
                 assert np.abs(mean - net.actor(x)).max() > 1e-3  # the skip term is really part of the mean
+        if net.squash:  # the env got tanh(a) in training
+            mean = torch.tanh(mean)
         want = ref.act(mean.numpy().astype(np.float64))  # (act tells ref's observer the force: once per step)
         np.testing.assert_allclose(action, want, rtol=0, atol=1e-6)
         obs, *_ = env.step(action)
@@ -331,6 +334,29 @@ def test_bounds_loss_pulls_a_saturated_mean_back_inside_the_action_box():
         m = net.mean(torch.from_numpy(obs)).numpy()
     assert np.all(np.abs(m[..., 2]) < 1.05)
     np.testing.assert_allclose(m[..., 0], 0.5, atol=0.05)
+
+
+def test_squashed_policy_acts_with_tanh_of_its_mean_inside_the_box(tmp_path):
+    """With policy_kwargs squash=True the env action is tanh of the Gaussian's draw: a loaded
+    agent whose mean is (0.5, 0, 1.5) commands tanh(0.5) = 0.46212 and tanh(1.5) = 0.90515 (hand
+    values), inside the box; a mean of 3 still moves the action (tanh 3 = 0.99505), where an
+    unsquashed mean of 1.5 or 3 is clipped to the same 1."""
+    import torch
+
+    from agents.training.loading import load_agent
+
+    _tiny_bppo(tmp_path, "--hp", "policy_kwargs=dict(squash=True)")
+    agent = load_agent(tmp_path / "r")
+    assert agent.net.squash
+    obs = np.zeros((2, 20))
+    for yaw, want in ((1.5, 0.90515), (3.0, 0.99505)):
+        with torch.no_grad():
+            agent.net.actor[-1].weight.zero_()
+            agent.net.actor[-1].bias.copy_(torch.tensor([0.5, 0.0, yaw]))
+        agent.reset()
+        a, _ = agent.predict(obs, deterministic=True)
+        np.testing.assert_allclose(a[:, 0], 0.46212, atol=1e-5)
+        np.testing.assert_allclose(a[:, 2], want, atol=1e-5)
 
 
 def test_yaw_rate_term_is_the_squared_yaw_rate_of_the_observation():

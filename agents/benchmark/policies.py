@@ -275,6 +275,9 @@ def _residual_settings(spec: PolicySpec) -> set[tuple[str, str] | None]:
             found.add(None)
             continue
         run = cfg.get("run", {}) if isinstance(cfg, dict) else {}
+        if run.get("mode") == "estimator":  # a learned estimator feeding its base controller's law
+            found.add((str(run.get("controller")), "learned estimator"))
+            continue
         if run.get("mode") != "residual":
             found.add(None)
             continue

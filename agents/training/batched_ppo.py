@@ -66,7 +66,10 @@ critic, trained on whole rollout sequences per env with the state reset at episo
 starts), ``privileged_critic`` (asymmetric critic: the critic also sees the *true* present
 reference point relative to the follower, from the env's ``info["true_reference"]`` and
 ``info["follower_pose"]``: dx, dy in the body frame, cos/sin of the heading error; the
-actor never does, and evaluation needs no privileged input).
+actor never does, and evaluation needs no privileged input), ``squash`` (a tanh-squashed
+Gaussian: the env gets tanh(a) for a ~ N(mu, std), so the action stays inside the box without the
+env's clipping and a mean far out still moves the action a little; the buffer keeps a, and the
+tanh's Jacobian cancels in PPO's ratio; ``predict`` returns tanh(mu)).
 
 **Distillation** (``teacher``, ``teacher_link``, ``distill_steps``): for the first
 ``distill_steps`` env steps the student is trained by DAgger, not PPO. A scripted controller
@@ -121,7 +124,7 @@ __all__ = ["BatchedPPO", "BatchedAgent", "train_bppo", "load_bppo_agent", "MODEL
 MODEL_FORMAT = "auv-follow/batched-ppo/v1"
 POLICY_DEFAULTS: dict[str, Any] = {"net_arch": [64, 64], "activation": "tanh", "log_std_init": -1.0,
                                    "recurrent": False, "gru_size": 64, "privileged_critic": False,
-                                   "linear_skip": False}
+                                   "linear_skip": False, "squash": False}
 LR_SCHEDULES = ("constant", "linear")
 TEACHER_LINKS = ("perfect", "real")
 PRIV_DIM = 4
@@ -229,7 +232,7 @@ def _policy_kwargs(pk: dict | None) -> dict[str, Any]:
         out["net_arch"] = _sizes("policy_kwargs net_arch", arch)
     if out["activation"] not in ("tanh", "relu"):
         raise ValueError(f"policy_kwargs activation={out['activation']!r} is invalid: must be 'tanh' or 'relu'")
-    for key in ("recurrent", "privileged_critic", "linear_skip"):
+    for key in ("recurrent", "privileged_critic", "linear_skip", "squash"):
         if not isinstance(out[key], bool):
             raise ValueError(f"policy_kwargs {key}={out[key]!r} is invalid: must be True or False")
     out["gru_size"] = whole_number("policy_kwargs gru_size", out["gru_size"], 1, MAX_HIDDEN)
@@ -389,6 +392,7 @@ def _build_net(obs_dim: int, pk: dict[str, Any]):
             if self.skip is not None:
                 nn.init.zeros_(self.skip.weight)
             self.log_std = nn.Parameter(torch.full((3,), float(pk["log_std_init"])))
+            self.squash = bool(pk["squash"])
 
         def initial_state(self, n: int):
             return torch.zeros(n, pk["gru_size"]) if self.recurrent else None
@@ -526,6 +530,8 @@ class BatchedAgent:
             mean = self.net.mean(x)
             if not deterministic:
                 mean = mean + torch.exp(self.net.log_std) * torch.randn_like(mean)
+            if self.net.squash:
+                mean = torch.tanh(mean)
         action = self.builder.act(mean.numpy().astype(np.float64))
         return (action[0] if single else action), state
 
@@ -778,6 +784,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     max_s = 60.0 * cfg.max_minutes if cfg.max_minutes is not None else math.inf
     interrupted, last_eval = False, None
     log_std_min = LOG_STD_MIN
+    squash = net.squash
     diverged: str | None = None
     ep_returns: list[float] = []
     ep_errors: list[float] = []
@@ -823,9 +830,11 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                     if not np.isfinite(buf_act[t]).all():
                         raise _Diverged(f"the policy's actions are not finite (NaN or inf) at {steps:,} steps")
                     act = a.numpy().astype(np.float64)
+                    if squash:  # the env gets tanh(a); the buffer keeps a (the ratio's Jacobians cancel)
+                        act = np.tanh(act)
                     if distilling:  # DAgger: label with the teacher, act with a mix that ends at the student
-                        act, buf_teach[t] = _teacher_step(teacher, env, first, mean.numpy(), steps, distill_steps,
-                                                          mix_rng)
+                        student = (torch.tanh(mean) if squash else mean).numpy()
+                        act, buf_teach[t] = _teacher_step(teacher, env, first, student, steps, distill_steps, mix_rng)
                     raw_obs, rew, term, trunc, info = env.step(act)
                     valid = ~info["prev_done"]
                     # the change of the executed action (none at an episode's first step)
@@ -1011,6 +1020,8 @@ def _distill_update(net: Any, opt: Any, hp: dict, obs, priv, teach, ret, valid) 
             t_i, n_i = g // N, g % N
             x, _ = net.trunk(o_t[t_i, n_i], None, None)
             mean, value = net.heads(x, p_t[t_i, n_i] if p_t is not None else None)
+            if net.squash:
+                mean = torch.tanh(mean)
             bc = ((mean - y_t[t_i, n_i]) ** 2).sum(-1).mean()
             vl = 0.5 * ((value - ret_t[t_i, n_i]) ** 2).mean()
             loss = bc + vf_coef * vl

@@ -126,6 +126,10 @@ def load_agent(path: str | Path, name: str | None = None) -> Agent:
         raise FileNotFoundError(f"no config.yaml next to {model_path} or in {model_path.parent.parent}: "
                                 "not a run directory")
     config = read_run_config(cfg_path)
+    if config["run"]["algo"] == "estimator":
+        from agents.training.learned_estimator import load_estimator_agent
+
+        return load_estimator_agent(model_path, config, name=name)
     stats = None
     norm = config.get("normalize")
     if norm is not None and norm.get("norm_obs", True):

@@ -56,6 +56,11 @@ def _run_config_path(model_path: Path) -> Path | None:
     return None
 
 
+#: run kinds that load and score like a trained agent but are not made by ``auv-follow train``:
+#: ``estimator`` (:mod:`agents.training.learned_estimator`, its algo and mode)
+LOADABLE_ONLY_ALGOS: tuple[str, ...] = ("estimator",)
+
+
 def read_run_config(path: str | Path) -> dict[str, Any]:
     """A run's ``config.yaml``, checked: a mapping with a ``run`` section naming a known algo and mode.
 
@@ -71,7 +76,7 @@ def read_run_config(path: str | Path) -> dict[str, Any]:
     if not isinstance(data, dict) or not isinstance(data.get("run"), dict):
         raise ValueError(f"{path} is {'empty' if data is None else 'not ' + what}: expected {what}")
     run = data["run"]
-    for key, valid in (("algo", ALGOS), ("mode", MODES)):
+    for key, valid in (("algo", ALGOS + LOADABLE_ONLY_ALGOS), ("mode", MODES + LOADABLE_ONLY_ALGOS)):
         if run.get(key) not in valid:
             raise ValueError(f"{path}: run.{key}={run.get(key)!r} is invalid: must be one of {list(valid)}")
     if not isinstance(run.get("env_id"), str):
