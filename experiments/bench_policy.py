@@ -61,12 +61,15 @@ def parse_args(argv: list[str] | None = None) -> Args:
     p.add_argument("--episode-s", type=float, default=Args.episode_s, help="episode length [s] (default %(default)s)")
     p.add_argument("--repeats", type=int, default=Args.repeats, help="interleaved repeats (default %(default)s)")
     p.add_argument("--env-id", default=Args.env_id, help="AUVFollow id, v0 or v1 (default %(default)s)")
-    p.add_argument("--controller", default=Args.controller, choices=ALL_CONTROLLERS + MODEL_AWARE_CONTROLLERS,
-                   help="scripted controller in the loop (default %(default)s)")
+    p.add_argument("--controller", default=Args.controller,
+                   help="scripted controller in the loop, or a learned-estimator run directory (default %(default)s)")
     p.add_argument("--out", type=Path, default=None,
                    help="Markdown output file (default: results/bench_policy.md; results/tmp/ with non-default "
                         "settings)")
     a = p.parse_args(argv)
+    if a.controller not in ALL_CONTROLLERS + MODEL_AWARE_CONTROLLERS and not Path(a.controller).is_dir():
+        p.error(f"--controller {a.controller!r} is invalid: must be one of "
+                f"{list(ALL_CONTROLLERS + MODEL_AWARE_CONTROLLERS)} or a run directory")
     if a.n < 1 or a.repeats < 1 or not a.episode_s > 0:
         p.error("--n and --repeats must be >= 1, --episode-s > 0")
     a.out = output_path(a, p, Args.out)
@@ -111,9 +114,18 @@ def time_env(venv: Any, n: int, steps: int) -> tuple[float, int]:
     return time.perf_counter() - t0, ends
 
 
+def _make(name: str, spec: Any) -> Any:
+    """A fresh controller: by name, or the controller of a learned-estimator run directory."""
+    if Path(name).is_dir():
+        from agents.training.loading import load_agent
+
+        return load_agent(name).controller()
+    return make_controller(name, spec)
+
+
 def time_predict(name: str, spec: Any, obs: np.ndarray, steps: int) -> float:
     """Seconds for ``steps`` calls of a fresh controller's predict on ``obs`` (after one untimed call)."""
-    policy = make_controller(name, spec)
+    policy = _make(name, spec)
     start = np.zeros(obs.shape[0], dtype=bool)
     policy.predict(obs, episode_start=start)
     t0 = time.perf_counter()
@@ -125,7 +137,7 @@ def time_predict(name: str, spec: Any, obs: np.ndarray, steps: int) -> float:
 def time_evaluate(args: Args, spec: Any, proxy: bool = False, reuse: bool = True) -> tuple[float, int, _Timed | None]:
     """(seconds, env-steps, timing proxy or None) of one evaluate_batched run with the controller
     (``reuse=False``: its target estimator recomputes the commit after each peek)."""
-    policy: Any = make_controller(args.controller, spec)
+    policy: Any = _make(args.controller, spec)
     if getattr(policy, "estimator", None) is not None:
         policy.estimator.reuse_peek = reuse
     timed = _Timed(policy) if proxy else None
@@ -138,7 +150,7 @@ def time_evaluate(args: Args, spec: Any, proxy: bool = False, reuse: bool = True
 def fixed_batch(venv: Any, name: str, spec: Any, n: int, steps: int = 20) -> np.ndarray:
     """The env's observations after ``steps`` steps of the controller (realistic values)."""
     obs, _ = venv.reset(seed=list(range(n)))
-    policy = make_controller(name, spec)
+    policy = _make(name, spec)
     for _ in range(steps):
         obs = venv.step(policy.predict(obs)[0])[0]
     return obs
@@ -173,7 +185,7 @@ def run(args: Args) -> dict[str, Any]:
     T = spec.n_steps
     obs = fixed_batch(venv, args.controller, spec, args.n)  # also the env's warm-up (compilation of its kernels)
     time_predict(args.controller, spec, obs, 2)  # warm-up
-    warm = make_controller(args.controller, spec)
+    warm = _make(args.controller, spec)
     evaluate_batched([warm], args.env_id, seeds=range(min(args.n, 8)), env_kwargs=kw, progress=False)
     best = {"env": np.inf, "predict": np.inf, "evaluate": np.inf}
     has_estimator = getattr(warm, "estimator", None) is not None

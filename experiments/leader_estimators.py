@@ -88,11 +88,12 @@ def record(tier: str, seeds: tuple[int, ...], scoring: bool = False) -> dict:
     return {"obs": O, "ref": ref, "alive": alive, "spec": spec}
 
 
-def episode_errors(config: EstimatorConfig, data: dict) -> np.ndarray:
+def episode_errors(config: EstimatorConfig | TargetEstimator, data: dict) -> np.ndarray:
     """Per episode, the mean error [m] of the estimated present reference point over the steady
-    window while the episode runs (NaN if it never gets there)."""
+    window while the episode runs (NaN if it never gets there); ``config`` may also be a fresh
+    estimator (e.g. the learned one)."""
     spec = data["spec"]
-    est = TargetEstimator(spec, config)
+    est = config if isinstance(config, TargetEstimator) else TargetEstimator(spec, config)
     O, ref, alive = data["obs"], data["ref"], data["alive"]
     T, n = alive.shape
     tot, cnt = np.zeros(n), np.zeros(n)

@@ -341,7 +341,8 @@ class EstimatorAgent:
     def raw_policy(self, env_id: str | None = None, env_kwargs: dict | None = None) -> Any:
         return self
 
-    def _controller(self):
+    def controller(self):
+        """The controller (PROPOSED_IMM_DOB's law on the learned estimator) for this run's env id."""
         if self._ctrl is None:
             import gymnasium as gym
 
@@ -352,11 +353,11 @@ class EstimatorAgent:
         return self._ctrl
 
     def reference(self, observation) -> np.ndarray:
-        return self._controller().reference(observation)
+        return self.controller().reference(observation)
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool = True) -> tuple[np.ndarray, Any]:
-        return self._controller().predict(observation, state=state, episode_start=episode_start,
+        return self.controller().predict(observation, state=state, episode_start=episode_start,
                                           deterministic=deterministic)
 
 
