@@ -40,7 +40,7 @@ def _curves_png(runs: list[Path], tier: str, path: Path) -> None:
     import matplotlib.pyplot as plt
     import pandas as pd
 
-    fig, ax = plt.subplots(figsize=(6.4, 3.8))
+    fig, ax = plt.subplots(figsize=(7.2, 3.8))
     imm = None
     for r in runs:
         c = pd.read_csv(r / "curve.csv")
@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> str:
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True)
     a = p.parse_args(argv)
     tag = a.tier.replace("-", "_").lower()
-    out = output_path(a, p, Path(f"results/learned_estimator_{tag}.md"))
+    out = output_path(a, p, Path(f"results/learned_estimator_{tag}.md"), ignore=("progress", "tier"))
     from agents.training.learned_estimator import LearnedEstimator, train_estimator
     from controllers import LEADER_IMM
     from experiments import leader_estimators as le
@@ -106,8 +106,8 @@ def main(argv: list[str] | None = None) -> str:
         for e in learned:
             r, lo, hi = le.ratio_ci(e, imm)
             share = (le.iqm(imm) - le.iqm(e)) / gap if gap > 0 else float("nan")
-            row.append(f"{le.iqm(e):.3f}; {100 * r:+.0f} % ({100 * lo:+.0f} to {100 * hi:+.0f}) vs IMM; "
-                       f"gap share {share:.2f}")
+            gs = f"gap share {share:.2f}" if share == share else "no gap (the particle filter is worse than the IMM)"
+            row.append(f"{le.iqm(e):.3f}; {100 * r:+.0f} % ({100 * lo:+.0f} to {100 * hi:+.0f}) vs IMM; {gs}")
         rows.append("| " + " | ".join(row) + " |")
     lines = [f"# Learned estimator on {a.tier}", "",
              f"Reproduce: `python -m experiments.learned_estimator --tier {a.tier}` (method in its docstring; "

@@ -676,7 +676,9 @@ def _columns_html(board: pd.DataFrame, gap: bool, has_base: bool, has_filtered: 
                                                                "difference against its own base controller; "
                                                                "obs: what its observation carries (raw: the env's "
                                                                "fields and the base action; estimator: also a "
-                                                               "target filter's estimate)."))
+                                                               "target filter's estimate; learned estimator: a "
+                                                               "learned estimate of the target feeding the base's "
+                                                               "own law, no learned action)."))
     if has_filtered:
         items.append(("paired diff vs its base's law on its observation's filter [m] [95 % CI]",
                       "for a residual whose observation carries a target filter its base lacks: the paired "
