@@ -90,7 +90,11 @@ def test_report_page_loads_without_console_errors_and_shows_the_leaderboard(repo
     try:
         driver.set_page_load_timeout(120)
         driver.get(report.resolve().as_uri())
-        rows = driver.find_elements(By.CSS_SELECTOR, "table.leaderboard tr.leaderboard-row")
+        from selenium.webdriver.support.ui import WebDriverWait
+
+        # (the rows are static HTML; on a loaded machine the DOM was once still empty right after get())
+        rows = WebDriverWait(driver, 60).until(
+            lambda d: d.find_elements(By.CSS_SELECTOR, "table.leaderboard tr.leaderboard-row"))
         assert sorted(r.get_attribute("data-policy") for r in rows) == ["PID", "PRED_ONLY", "PROPOSED", "PROPOSED_KF"]
         assert all(r.is_displayed() for r in rows)
         assert driver.execute_script("return typeof window.Plotly") == "object"
@@ -171,6 +175,10 @@ def test_committed_report_in_a_browser(tmp_path):
     try:
         driver.set_page_load_timeout(120)
         driver.get(page.resolve().as_uri())
+        from selenium.webdriver.support.ui import WebDriverWait
+
+        WebDriverWait(driver, 60).until(  # (a loaded machine can leave the DOM unfinished right after get())
+            lambda d: d.execute_script("return document.querySelectorAll('.js-plotly-plot').length") >= 5)
         colours = _colours(driver)
         assert len(colours) >= 20 and all(len(c) == 1 for c in colours.values()), colours
         assert len({next(iter(c)) for c in colours.values()}) == len(colours)
