@@ -11,12 +11,22 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["METRIC_KEYS", "tracking_metrics", "window_metrics", "batch_tracking_metrics", "history_metrics",
-           "history_metrics_into", "steady_index"]
+__all__ = ["METRIC_KEYS", "true_reference_body", "tracking_metrics", "window_metrics", "batch_tracking_metrics",
+           "history_metrics", "history_metrics_into", "steady_index"]
 
 #: keys of :func:`tracking_metrics`, in table order
 METRIC_KEYS: tuple[str, ...] = (
     "full_mean", "full_rmse", "full_max", "steady_mean", "steady_rmse", "steady_max")
+
+
+def true_reference_body(info: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The true present reference point relative to the follower, in the follower's body frame
+    (dx forward, dy to port) [m], from a vector env's ``info`` (``true_reference`` and
+    ``follower_pose``, (N, 3) each): privileged, for training targets and scoring only."""
+    ref, pose = info["true_reference"], info["follower_pose"]
+    dx, dy = ref[:, 0] - pose[:, 0], ref[:, 1] - pose[:, 1]
+    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+    return c * dx + s * dy, -s * dx + c * dy
 
 
 def window_metrics(errors: np.ndarray) -> tuple[float, float, float]:

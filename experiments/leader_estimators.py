@@ -40,6 +40,7 @@ import gymnasium as gym
 import numpy as np
 
 import auv_follow_env  # noqa: F401
+from auv_follow_env.metrics import true_reference_body
 from auv_follow_env.tiers import LEADER_TIERS, check_training_seeds
 from controllers import _leader_pf, make_controller
 from controllers.estimator import EstimatorConfig, TargetEstimator
@@ -75,10 +76,7 @@ def record(tier: str, seeds: tuple[int, ...], scoring: bool = False) -> dict:
     start = np.ones(n, dtype=bool)
     for k in range(T):
         O[k] = obs
-        fol, tr = info["follower_pose"], info["true_reference"]
-        c, s = np.cos(fol[:, 2]), np.sin(fol[:, 2])
-        dx, dy = tr[:, 0] - fol[:, 0], tr[:, 1] - fol[:, 1]
-        ref[k, :, 0], ref[k, :, 1] = c * dx + s * dy, -s * dx + c * dy
+        ref[k, :, 0], ref[k, :, 1] = true_reference_body(info)
         alive[k] = running
         a, _ = ctrl.predict(obs, episode_start=start)
         start[:] = False

@@ -118,6 +118,7 @@ from typing import Any
 import numpy as np
 
 from agents.training.obs_stats import ObsStats, read_obs_stats, write_obs_stats
+from auv_follow_env.metrics import true_reference_body
 
 __all__ = ["BatchedPPO", "BatchedAgent", "train_bppo", "load_bppo_agent", "MODEL_FORMAT", "POLICY_DEFAULTS"]
 
@@ -446,10 +447,9 @@ def _privileged(info: dict[str, Any], n: int) -> np.ndarray:
     ref, pose = info.get("true_reference"), info.get("follower_pose")
     if ref is None or pose is None:
         return np.zeros((n, PRIV_DIM), dtype=np.float32)
-    dx, dy = ref[:, 0] - pose[:, 0], ref[:, 1] - pose[:, 1]
-    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+    bx, by = true_reference_body(info)
     de = ref[:, 2] - pose[:, 2]
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, np.cos(de), np.sin(de)], axis=-1).astype(np.float32)
+    return np.stack([bx, by, np.cos(de), np.sin(de)], axis=-1).astype(np.float32)
 
 
 # --- the trained agent as a policy -------------------------------------------------------------

@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from auv_follow_env.layout import OBS_DIM_V1
+from auv_follow_env.metrics import true_reference_body
 from auv_follow_env.params import TaskSpec
 from controllers.estimator import TargetEstimate, TargetEstimator, _copy_estimate
 from controllers.hierarchical import reference_point
@@ -139,11 +140,9 @@ def record_episodes(env_id: str, first_seed: int, n: int, *, progress: bool = Fa
     for k in tqdm(range(T), desc=f"record {env_id}", disable=not progress, leave=False):
         est = imm.step(obs, start, with_cov=False)
         X[k] = features(obs, est, spec)
-        fol, tr = info["follower_pose"], info["true_reference"]
-        c, s = np.cos(fol[:, 2]), np.sin(fol[:, 2])
-        dx, dy = tr[:, 0] - fol[:, 0], tr[:, 1] - fol[:, 1]
-        Y[k, :, 0] = c * dx + s * dy - X[k, :, OBS_DIM_V1]
-        Y[k, :, 1] = -s * dx + c * dy - X[k, :, OBS_DIM_V1 + 1]
+        bx, by = true_reference_body(info)
+        Y[k, :, 0] = bx - X[k, :, OBS_DIM_V1]
+        Y[k, :, 1] = by - X[k, :, OBS_DIM_V1 + 1]
         M[k] = running & est.valid
         a, _ = ctrl.predict(obs, episode_start=start)
         start[:] = False
