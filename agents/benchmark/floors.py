@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -418,11 +419,12 @@ def delayed_kalman(F: np.ndarray, Q: np.ndarray, k0: int, T: int, meas: np.ndarr
 
 
 def record_episodes(tier: str, seeds: Iterable[int] | None = None, follower: str = DEFAULT_FOLLOWER, *,
-                    progress: bool = False) -> dict[str, Any]:
+                    progress: bool = False, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """Play a tier's episodes with ``follower`` on the real link and keep, per step 0..T,
     the observations, true target, follower pose and true reference (``obs``, ``target``,
     ``pose``, ``ref``: (T + 1, n, .)), with ``length``, ``conditions``, ``spec``, ``seeds`` and
-    the follower's per-episode rows (``episodes``)."""
+    the follower's per-episode rows (``episodes``). ``overrides``: condition fields for the
+    env (``gym.make(env_id, **overrides)``; for studies and tests, never the leaderboard)."""
     import controllers as ctl
 
     tier = _check_tier(tier)
@@ -430,11 +432,11 @@ def record_episodes(tier: str, seeds: Iterable[int] | None = None, follower: str
     if follower not in ctl.ALL_CONTROLLERS:
         raise ValueError(f"follower={follower!r} is invalid: must be one of {list(ctl.ALL_CONTROLLERS)}")
     env_id = f"AUVFollow-{tier}-v1"
-    probe = gym.make(env_id)
+    probe = gym.make(env_id, **(overrides or {}))
     spec = probe.unwrapped.task_spec
     probe.close()
     eps, rec = _rollout([ctl.make_controller(follower, spec)], [follower], env_id, seeds, perfect=False, record=True,
-                        env_kwargs={"max_distance_m": RECORD_MAX_DISTANCE_M}, progress=progress)
+                        env_kwargs={**(overrides or {}), "max_distance_m": RECORD_MAX_DISTANCE_M}, progress=progress)
     # the benchmark's score of the follower: an episode that went beyond the tier's loss threshold
     # counts as terminated there (the recording ran on to 60 s)
     lost = eps["true_full_max"] > _max_distance()
@@ -606,10 +608,13 @@ def information_floor(tier: str, seeds: Iterable[int] | None = None, follower: s
 # --- leaderboard integration -------------------------------------------------------------
 
 def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers: Sequence[str] | None = None,
-                   follower: str = DEFAULT_FOLLOWER, progress: bool = False) -> pd.DataFrame:
+                   follower: str = DEFAULT_FOLLOWER, progress: bool = False,
+                   cache_dir: str | Path | None = None) -> pd.DataFrame:
     """Both floors of a tier as rows of the benchmark's episodes table (``kind`` =
     :data:`REFERENCE_KIND`; policy :data:`CONTROL_FLOOR` with ``run`` = the best controller,
-    and :data:`INFORMATION_FLOOR` with ``run`` = ``"kalman"``), with the drawn condition
+    and :data:`INFORMATION_FLOOR` with ``run`` = ``"kalman"`` on a v1 tier, the particle filter
+    of :mod:`agents.benchmark.bayes_floor` on a Leader tier, its rows cached in ``cache_dir``
+    if given), with the drawn condition
     (``cond_*``) and the loss threshold like :func:`agents.benchmark.evaluate_tier`'s rows.
     The information floor's ``true_*_mean`` are the expected errors; its other metrics are NaN."""
     from agents.benchmark.protocol import _condition_columns
@@ -625,12 +630,18 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
     frames = [ctrl]
     from auv_follow_env.tiers import TIERS
 
-    if tier in TIERS:  # (a Leader tier has the control floor only)
+    if tier in TIERS:
         inf = information_floor(tier, seeds, follower, progress=progress)
-        frames.append(pd.DataFrame({"policy": INFORMATION_FLOOR, "run": "kalman", "seed": inf["seed"],
-                                    "steps": inf["steps"], "terminated": False, "return": np.nan,
-                                    "true_steady_mean": inf["expected_steady_mean"],
-                                    "true_full_mean": inf["expected_full_mean"]}))
+        run = "kalman"
+    else:  # a Leader tier: the particle filter under the true generator (agents/benchmark/bayes_floor.py)
+        from agents.benchmark.bayes_floor import DEFAULT_PARTICLES, leader_floor
+
+        inf = leader_floor(tier, seeds, cache_dir=None if cache_dir is None else str(cache_dir), progress=progress)
+        run = f"particle filter, {DEFAULT_PARTICLES} particles"
+    frames.append(pd.DataFrame({"policy": INFORMATION_FLOOR, "run": run, "seed": inf["seed"],
+                                "steps": inf["steps"], "terminated": False, "return": np.nan,
+                                "true_steady_mean": inf["expected_steady_mean"],
+                                "true_full_mean": inf["expected_full_mean"]}))
     df = pd.concat(frames, ignore_index=True)
     for m in ("full_mean", "full_rmse", "full_max", "steady_mean", "steady_rmse", "steady_max"):
         if f"true_{m}" not in df:

@@ -59,7 +59,7 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
         batched: evaluate through the native vector env.
         command: the command line to record (the CLI fills it in).
         cache_dir: reuse the episodes of runs evaluated before (see :func:`evaluate_tier`).
-        floors: add each v1 tier's control and information floors as reference rows
+        floors: add each v1 and Leader tier's control and information floors as reference rows
             (``kind="reference"``, :func:`agents.benchmark.floors.floor_episodes`) and the leaderboard's
             ``gap_closed`` column.
 
@@ -112,7 +112,8 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
     if floors:  # reference rows, not competitors (agents/benchmark/floors.py)
         from agents.benchmark.floors import floor_episodes
 
-        frames += [floor_episodes(t, seed_map[t], progress=progress) for t in tiers if t in V1_TIERS + LEADER_TIERS]
+        frames += [floor_episodes(t, seed_map[t], progress=progress, cache_dir=cache_dir)
+                   for t in tiers if t in V1_TIERS + LEADER_TIERS]
     episodes = pd.concat(frames, ignore_index=True)
     board = leaderboard(episodes, n_resamples=n_resamples, seed=bootstrap_seed, progress=progress,
                         bases=residual_bases(specs),

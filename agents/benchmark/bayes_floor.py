@@ -1,0 +1,535 @@
+"""The information floor of the Leader tiers: a particle filter under the true generator.
+
+On a Leader tier the target's speed and turn rate follow hidden semi-Markov modes
+(docs/tiers.md, "Leader tiers"), so the posterior of the present reference point given the
+packets received is not Gaussian and the v1 tiers' Kalman floor (:mod:`agents.benchmark.floors`)
+does not apply. This module computes it by Monte Carlo, per episode, offline:
+
+* **The model is the generator itself.** Each particle is one copy of the env's leader process:
+  its row of the kernel's process state, advanced by the kernel's own
+  :func:`auv_follow_env.dynamics.leader_step` with the episode's true parameters (the env's
+  parameter row), and the target pose integrated exactly over each control step with the speed
+  and turn rate held over it (the kernel integrates the same arc by Runge-Kutta; the two agree
+  to 1e-12 m per step). Only the random draws are the particle's own.
+* **The fixes are weighted where they were measured.** The filter keeps an *anchor* cloud: the
+  posterior at the measurement step of the newest fix assimilated. When a packet arrives it
+  advances the anchor to the packet's measurement step with the prior, weights each particle by
+  the fix's likelihood (position: a mixture of the Gaussian fix noise and, with the tier's
+  outlier share, the multipath outlier's 2-D Student-t; heading, speed and turn rate:
+  Gaussian), resamples (systematic) and advances a copy to the present. The estimate at step k
+  uses the packets that arrived by step k - 1 (the information behind the action that moved the
+  follower to step k), as the v1 tiers' Kalman floor. A packet that arrives
+  out of order (measured before the anchor) is assimilated by re-running the filter from the
+  cloud stored after the newest fix measured before it (retrodiction by re-simulation).
+* **No threshold degeneracy.** A mode ends when its progress reaches a threshold drawn when it
+  began; copies of one particle after resampling would share it and switch in lockstep. After
+  every resampling each particle's threshold is re-drawn from its exact conditional given the
+  progress made (the mode's duration law truncated to more than the progress: an Erlang(4)
+  duration, the survey leg's uniform jitter, or for an episode's first leg the length-biased
+  law 1 / thr), a Gibbs move that leaves the posterior unchanged and keeps the switch times
+  diverse.
+* **The point estimate for our metric.** The leaderboard scores the mean *norm* of the error:
+  the estimate that minimises the posterior's expected norm is the spatial (geometric) median
+  of the particles' reference points, found by Weiszfeld's iteration from the mean.
+  ``expected`` is the posterior's own mean distance to that median (the floor), ``realised``
+  the median's distance to the true reference point; the two agree on average when the model
+  is right and the particles are enough.
+
+The fix noise of each packet is the one it was drawn with (sigma = fix_sigma_m +
+fix_sigma_per_m * the true range at its measurement, from the recording), so the floor is that
+of the packets the recording follower received. (The v1 tiers' linear floor takes the range of
+a follower on the reference point; :func:`particle_floor_episode` accepts either.)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pandas as pd
+from numba import njit, prange
+
+from auv_follow_env import dynamics as dyn
+
+__all__ = ["BAYES_FLOOR", "DEFAULT_PARTICLES", "episode_params", "particle_floor_episode", "bayes_floor"]
+
+#: leaderboard label of the Leader tiers' information floor
+BAYES_FLOOR = "information floor"
+#: particles per episode by default (docs/benchmark.md, "Floors": the floor for N and 2N)
+DEFAULT_PARTICLES = 8192
+#: continuations of each particle weighted at a fix (:func:`particle_floor_episode`)
+DEFAULT_CHILDREN = 4
+#: stored clouds for out-of-order fixes (a packet measured before the newest K - 1 assimilated
+#: fixes is dropped and counted: none on the published test seeds)
+RETRO_DEPTH = 8
+#: Weiszfeld iterations (from the particle mean) and their stopping step [m]
+WEISZFELD_ITERS, WEISZFELD_TOL = 50, 1e-6
+_LOG2PI = math.log(2.0 * math.pi)
+_NU = dyn.OUTLIER_DOF
+
+
+# --- one particle ------------------------------------------------------------------------
+
+@njit(cache=True, inline="always")
+def _held(p, proc, i):
+    """The target's (surge speed, turn rate) held over the next step, clipped as the kernel does."""
+    u = min(max(proc[i, dyn.R_OUU], p[i, dyn.P_ULO]), p[i, dyn.P_UHI])
+    r = min(max(proc[i, dyn.R_OUR], -p[i, dyn.P_RMAX]), p[i, dyn.P_RMAX])
+    return u, r
+
+
+@njit(cache=True, parallel=True)
+def _advance(proc, rs, p, pose, first, steps):
+    """Advance every particle by ``steps`` control steps: the exact arc with the held speed and
+    turn rate, then the kernel's leader step (mode switch, lags, wobbles). ``first[i]`` is
+    cleared when particle i leaves the episode's first mode."""
+    n = proc.shape[0]
+    for i in prange(n):
+        dt = p[i, dyn.P_LD_DT]
+        for _ in range(steps):
+            u, r = _held(p, proc, i)
+            ps0 = pose[i, 2]
+            ps1 = ps0 + r * dt
+            if abs(r) > 1e-9:
+                pose[i, 0] += u * (math.sin(ps1) - math.sin(ps0)) / r
+                pose[i, 1] -= u * (math.cos(ps1) - math.cos(ps0)) / r
+            else:
+                ph = ps0 + 0.5 * r * dt
+                pose[i, 0] += u * dt * math.cos(ph)
+                pose[i, 1] += u * dt * math.sin(ph)
+            pose[i, 2] = ps1
+            mode = proc[i, dyn.R_LD_MODE]
+            dyn.leader_step(proc, rs, p, i, dt)
+            if proc[i, dyn.R_LD_MODE] != mode:
+                first[i] = 0
+
+
+@njit(cache=True, inline="always")
+def _pos_loglik(ex, ey, sig, out_p, out_s):
+    """Log-density of a 2-D position error: the Gaussian fix noise, or with probability
+    ``out_p`` a multipath outlier (a 2-D Student-t, OUTLIER_DOF dof, whose scale absorbs the
+    Gaussian part: sqrt(out_s^2 + sig^2); the exact law is their convolution)."""
+    d2 = ex * ex + ey * ey
+    lg = -0.5 * d2 / (sig * sig) - _LOG2PI - 2.0 * math.log(sig)
+    if out_p <= 0.0:
+        return lg
+    s2 = out_s * out_s + sig * sig
+    # 2-D Student-t: Gamma((nu+2)/2) / (Gamma(nu/2) nu pi s^2) (1 + d2 / (nu s^2))^(-(nu+2)/2) = 1/(2 pi s^2) (...)
+    lt = -math.log(2.0 * math.pi * s2) - 0.5 * (_NU + 2.0) * math.log1p(d2 / (_NU * s2))
+    m = max(lg, lt)
+    return m + math.log((1.0 - out_p) * math.exp(lg - m) + out_p * math.exp(lt - m))
+
+
+@njit(cache=True, parallel=True)
+def _loglik(proc, p, pose, z, sig, logw, pose_too):
+    """Log-likelihood of fix ``z`` = (x, y, psi, u, r) for every particle (position sigma
+    ``sig``; heading, speed and turn-rate sigmas from the parameter row); without ``pose_too``
+    of the speed and turn rate only."""
+    n = proc.shape[0]
+    for i in prange(n):
+        u, r = _held(p, proc, i)
+        sp = max(p[i, dyn.P_NPSI], 1e-6)
+        su = max(p[i, dyn.P_NVEL], 1e-6)
+        sr = max(p[i, dyn.P_NYAW], 1e-6)
+        lw = -0.5 * (((z[3] - u) / su) ** 2 + ((z[4] - r) / sr) ** 2)
+        if pose_too:
+            dpsi = z[2] - pose[i, 2]
+            dpsi -= 2.0 * math.pi * math.floor((dpsi + math.pi) / (2.0 * math.pi))
+            lw += (_pos_loglik(z[0] - pose[i, 0], z[1] - pose[i, 1], sig, p[i, dyn.P_OUT_P], p[i, dyn.P_OUT_S])
+                   - 0.5 * (dpsi / sp) ** 2)
+        logw[i] = lw
+
+
+@njit(cache=True)
+def _erlang_remaining(k, lam, elapsed, rs, proc, i):
+    """A draw of an Erlang(k, rate lam) duration given that it exceeds ``elapsed``: the stages
+    completed by then (j < k, probability proportional to (lam t)^j / j!), then k - j fresh
+    exponential stages."""
+    x = lam * elapsed
+    w = 1.0
+    tot = 1.0
+    for j in range(1, k):
+        w *= x / j
+        tot += w
+    u = dyn.uniform01(rs, i) * tot
+    w = 1.0
+    acc = 1.0
+    j = 0
+    while acc < u and j < k - 1:
+        j += 1
+        w *= x / j
+        acc += w
+    t = elapsed
+    for _ in range(k - j):
+        t -= math.log(1.0 - dyn.uniform01(rs, i)) / lam
+    return t
+
+
+@njit(cache=True, parallel=True)
+def _rejuvenate(proc, rs, p, first):
+    """Re-draw every particle's mode threshold from its conditional given the progress made
+    (module docstring): a Gibbs move on the one variable that resampling would freeze."""
+    n = proc.shape[0]
+    for i in prange(n):
+        mode = proc[i, dyn.R_LD_MODE]
+        prog = proc[i, dyn.R_LD_PROG]
+        if mode == dyn.LD_UTURN:
+            continue
+        if mode == dyn.LD_LEG:
+            lo = p[i, dyn.P_LD_LEG] * (1.0 - dyn.LD_LEG_JITTER)
+            hi = p[i, dyn.P_LD_LEG] * (1.0 + dyn.LD_LEG_JITTER)
+            a = max(lo, prog)
+            if a >= hi:
+                continue
+            v = dyn.uniform01(rs, i)
+            proc[i, dyn.R_LD_THR] = a * (hi / a) ** v if first[i] else a + (hi - a) * v
+            continue
+        if mode == dyn.LD_CRUISE:
+            mean = p[i, dyn.P_LD_MC]
+        elif mode == dyn.LD_LOITER:
+            mean = p[i, dyn.P_LD_ML]
+        elif mode == dyn.LD_SPRINT:
+            mean = p[i, dyn.P_LD_MS]
+        else:
+            mean = p[i, dyn.P_LD_MT]
+        k = int(dyn.LD_K)
+        proc[i, dyn.R_LD_THR] = _erlang_remaining(k, k / mean, prog, rs, proc, i)
+
+
+@njit(cache=True, parallel=True)
+def _medians(pose, p, pdx, pdy, out):
+    """The particles' reference points' mean distance to their spatial median and the median
+    (Weiszfeld from the mean): out = (median x, median y, expected error)."""
+    n = pose.shape[0]
+    rx = np.empty(n)
+    ry = np.empty(n)
+    for i in prange(n):
+        c, s = math.cos(pose[i, 2]), math.sin(pose[i, 2])
+        rx[i] = pose[i, 0] + c * pdx - s * pdy
+        ry[i] = pose[i, 1] + s * pdx + c * pdy
+    mx = rx.mean()
+    my = ry.mean()
+    for _ in range(WEISZFELD_ITERS):
+        sw = 0.0
+        sx = 0.0
+        sy = 0.0
+        for i in range(n):
+            d = math.hypot(rx[i] - mx, ry[i] - my)
+            if d < 1e-12:
+                continue
+            w = 1.0 / d
+            sw += w
+            sx += w * rx[i]
+            sy += w * ry[i]
+        if sw == 0.0:
+            break
+        nx, ny = sx / sw, sy / sw
+        moved = math.hypot(nx - mx, ny - my)
+        mx, my = nx, ny
+        if moved < WEISZFELD_TOL:
+            break
+    tot = 0.0
+    for i in range(n):
+        tot += math.hypot(rx[i] - mx, ry[i] - my)
+    out[0], out[1], out[2] = mx, my, tot / n
+
+
+@njit(cache=True)
+def _systematic_n(logw, u0, n):
+    """Systematic resampling of n particles from len(logw) weighted ones: their ancestors, and
+    the effective sample size of the weights."""
+    m = logw.max()
+    w = np.exp(logw - m)
+    tot = w.sum()
+    ess = tot * tot / (w * w).sum()
+    idx = np.empty(n, dtype=np.int64)
+    c = w[0] / tot
+    j = 0
+    last = logw.shape[0] - 1
+    for k in range(n):
+        t = (u0 + k) / n
+        while t > c and j < last:
+            j += 1
+            c += w[j] / tot
+        idx[k] = j
+    return idx, ess
+
+
+@njit(cache=True, parallel=True)
+def _init_cloud(proc, rs, p, pose, first, z, sig, seed):
+    """Particles at the first fix: the leader's stationary start (the kernel's
+    :func:`auv_follow_env.dynamics.leader_init`) and the pose drawn from the fix's own
+    likelihood (a flat prior on position and heading: the Gaussian noise or, with the outlier
+    share, the Student-t outlier)."""
+    n = proc.shape[0]
+    for i in prange(n):
+        rs[i] = np.uint64(seed) + np.uint64(i) * np.uint64(0x9E3779B97F4A7C15)
+        dyn.next_u64(rs, i)
+        for c in range(proc.shape[1]):
+            proc[i, c] = 0.0
+        dyn.leader_init(proc, rs, p, i)
+        first[i] = 1
+        s = sig
+        if p[i, dyn.P_OUT_P] > 0.0 and dyn.uniform01(rs, i) < p[i, dyn.P_OUT_P]:
+            chi2 = 0.0
+            for _ in range(int(_NU)):
+                g = dyn.normal01(rs, proc, i)
+                chi2 += g * g
+            s = math.sqrt(p[i, dyn.P_OUT_S] ** 2 + sig * sig) * math.sqrt(_NU / max(chi2, 1e-300))
+        pose[i, 0] = z[0] + s * dyn.normal01(rs, proc, i)
+        pose[i, 1] = z[1] + s * dyn.normal01(rs, proc, i)
+        pose[i, 2] = z[2] + max(p[i, dyn.P_NPSI], 1e-6) * dyn.normal01(rs, proc, i)
+
+
+class _Cloud:
+    """The particles' state: kernel process rows, RNG states, target poses, first-mode flags."""
+
+    __slots__ = ("proc", "rs", "pose", "first")
+
+    def __init__(self, proc: np.ndarray, rs: np.ndarray, pose: np.ndarray, first: np.ndarray) -> None:
+        self.proc, self.rs, self.pose, self.first = proc, rs, pose, first
+
+    def copy(self) -> _Cloud:
+        return _Cloud(self.proc.copy(), self.rs.copy(), self.pose.copy(), self.first.copy())
+
+    def take(self, idx: np.ndarray) -> _Cloud:
+        return _Cloud(self.proc[idx], self.rs[idx], self.pose[idx], self.first[idx])
+
+
+def _reseed(rs: np.ndarray, rng: np.random.Generator) -> None:
+    """Fresh RNG streams for the particles after resampling (copies must not draw alike)."""
+    rs[:] = rng.integers(1, 2 ** 63 - 1, size=len(rs), dtype=np.int64).astype(np.uint64)
+
+
+def particle_floor_episode(params: np.ndarray, meas: np.ndarray, arr: np.ndarray, z: np.ndarray, sig: np.ndarray,
+                           ref: np.ndarray, p_d: Sequence[float], L: int, *, particles: int = DEFAULT_PARTICLES,
+                           children: int = DEFAULT_CHILDREN, seed: int = 0) -> dict[str, np.ndarray]:
+    """The particle floor of one Leader episode.
+
+    Args:
+        params: the episode's kernel parameter row (NP,), as the env drew it.
+        meas, arr: (M,) measurement and arrival steps of the packets received
+            (:func:`agents.benchmark.floors.extract_packets`).
+        z: (M, 5) the received fixes in the world frame: x, y, psi, u, r.
+        sig: (M,) each fix's position-noise sigma [m].
+        ref: (L + 1, 2) the true reference point at steps 0..L (for the realised error).
+        p_d: the desired offset (d, l) in the target's body frame [m].
+        L: the last step.
+        particles: N, the particles kept between fixes.
+        children: how many independent continuations of each particle are weighted at a fix (the
+            filter weights N x children candidates and resamples N: diversity where the fix is
+            sharp, at the cost of the propagation between fixes).
+        seed: the filter's own random seed.
+
+    Returns:
+        per step 0..L: ``median`` (L + 1, 2), ``expected`` and ``realised`` (L + 1,) [m] (the
+        estimate at step k from the packets that arrived by step k - 1; NaN until one has),
+        ``ess`` (M,) the effective sample size at each fix's weighting (before resampling),
+        ``dropped`` the out-of-order packets older than the stored clouds.
+    """
+    if not isinstance(particles, (int, np.integer)) or isinstance(particles, bool) or particles < 2:
+        raise ValueError(f"particles={particles!r} is invalid: must be an integer >= 2")
+    if not isinstance(children, (int, np.integer)) or isinstance(children, bool) or children < 1:
+        raise ValueError(f"children={children!r} is invalid: must be an integer >= 1")
+    n = int(particles)
+    children = int(children)
+    p = np.ascontiguousarray(np.broadcast_to(np.asarray(params, dtype=np.float64), (n, dyn.NP)))
+    pc = np.ascontiguousarray(np.broadcast_to(p[:1], (n * children, dyn.NP)))
+    rng = np.random.default_rng(seed)
+    pdx, pdy = float(p_d[0]), float(p_d[1])
+    median = np.full((L + 1, 2), np.nan)
+    expected = np.full(L + 1, np.nan)
+    ess = np.full(len(meas), np.nan)
+    order = np.argsort(arr, kind="stable")
+    history: list[tuple[int, int, _Cloud]] = []  # (meas step, packet index, posterior cloud at it)
+    pred: _Cloud | None = None
+    dropped = 0
+    out = np.empty(3)
+    ptr = 0
+
+    def assimilate(cloud: _Cloud, at: int, j: int) -> _Cloud:
+        """Advance ``children`` copies of ``cloud`` from step ``at`` to packet j's measurement
+        (each with its own draws), weight them, resample N."""
+        cloud = cloud.take(np.tile(np.arange(n), children))
+        _reseed(cloud.rs, rng)
+        _advance(cloud.proc, cloud.rs, pc, cloud.pose, cloud.first, int(meas[j] - at))
+        logw = np.empty(n * children)
+        _loglik(cloud.proc, pc, cloud.pose, np.ascontiguousarray(z[j]), float(sig[j]), logw, True)
+        idx, e = _systematic_n(logw, float(rng.random()), n)
+        ess[j] = e
+        new = cloud.take(idx)
+        _reseed(new.rs, rng)
+        _rejuvenate(new.proc, new.rs, p, new.first)
+        return new
+
+    k_start = int(min(0, arr.min())) if len(arr) else 0
+    for k in range(k_start, L + 1):
+        # the estimate at step k uses the packets that arrived by step k - 1 (the information behind
+        # the action that moved the follower to step k), as the v1 tiers' Kalman floor
+        if pred is not None:
+            _advance(pred.proc, pred.rs, p, pred.pose, pred.first, 1)
+            if k >= 0:
+                _medians(pred.pose, p, pdx, pdy, out)
+                median[k] = out[0], out[1]
+                expected[k] = out[2]
+        changed = False
+        while ptr < len(order) and arr[order[ptr]] <= k:
+            j = int(order[ptr])
+            ptr += 1
+            m = int(meas[j])
+            if not history:  # the first packet: the flat-prior start
+                c = _Cloud(np.zeros((n, dyn.NR)), np.zeros(n, dtype=np.uint64), np.zeros((n, 3)),
+                           np.zeros(n, dtype=np.int64))
+                _init_cloud(c.proc, c.rs, p, c.pose, c.first, np.ascontiguousarray(z[j]), float(sig[j]),
+                            int(rng.integers(1, 2 ** 62)))
+                logw = np.empty(n)
+                # the pose was drawn from its likelihood (the proposal): weight by speed and turn rate only
+                _loglik(c.proc, p, c.pose, np.ascontiguousarray(z[j]), float(sig[j]), logw, False)
+                idx, ess[j] = _systematic_n(logw, float(rng.random()), n)
+                c = c.take(idx)
+                _reseed(c.rs, rng)
+                _rejuvenate(c.proc, c.rs, p, c.first)
+                history.append((m, j, c))
+                changed = True
+                continue
+            later = [h for h in history if h[0] > m]
+            base = [h for h in history if h[0] < m]
+            if not base:
+                dropped += 1
+                continue
+            b = base[-1]
+            cloud = assimilate(b[2].copy(), b[0], j)
+            rebuilt = base + [(m, j, cloud)]
+            for hm, hj, _ in later:  # retrodiction: re-run the later fixes on the new posterior
+                cloud = assimilate(cloud.copy(), rebuilt[-1][0], hj)
+                rebuilt.append((hm, hj, cloud))
+            history = rebuilt[-RETRO_DEPTH:]
+            changed = True
+        if changed:  # the newest posterior, predicted to step k
+            am = history[-1][0]
+            pred = history[-1][2].copy()
+            if k > am:
+                _advance(pred.proc, pred.rs, p, pred.pose, pred.first, k - am)
+    realised = np.hypot(median[:, 0] - ref[:L + 1, 0], median[:, 1] - ref[:L + 1, 1])
+    return {"median": median, "expected": expected, "realised": realised, "ess": ess, "dropped": dropped}
+
+
+# --- per tier ----------------------------------------------------------------------------
+
+def episode_params(env_id: str, seeds: Iterable[int], **overrides: Any) -> np.ndarray:
+    """The kernel parameter rows (S, NP) the env draws for ``seeds`` (one single env, reset per seed)."""
+    env = gym.make(env_id, **overrides)
+    rows = []
+    for s in seeds:
+        env.reset(seed=int(s))
+        rows.append(env.unwrapped._sim.params[0].copy())
+    env.close()
+    return np.array(rows)
+
+
+def packet_sigmas(recording: dict[str, Any], j: int, meas: np.ndarray, *, nominal: bool = False) -> np.ndarray:
+    """Each packet's position-noise sigma: fix_sigma_m + fix_sigma_per_m * range, the range at its
+    measurement (``nominal``: a follower on the reference point, |p_d|, as the linear floor)."""
+    cond = {k: v[j] for k, v in recording["conditions"].items()}
+    s0, sk = float(cond["fix_sigma_m"]), float(cond["fix_sigma_per_m"])
+    if nominal:
+        rng = np.full(len(meas), math.hypot(*recording["spec"].p_d))
+    else:
+        mi = np.clip(meas, 0, None)
+        tg, ps = recording["target"][:, j], recording["pose"][:, j]
+        rng = np.hypot(tg[mi, 0] - ps[mi, 0], tg[mi, 1] - ps[mi, 1])
+    return s0 + sk * rng
+
+
+def bayes_floor(recording: dict[str, Any], params: np.ndarray, *, particles: int = DEFAULT_PARTICLES,
+                children: int = DEFAULT_CHILDREN,
+                nominal_sigma: bool = False, progress: bool = False, seed: int = 0) -> pd.DataFrame:
+    """The particle floor of every episode of a recording
+    (:func:`agents.benchmark.floors.record_episodes`), one row per seed: ``expected_steady_mean``
+    / ``expected_full_mean`` (the floor), ``realised_steady_mean`` / ``realised_full_mean``,
+    ``min_ess_share`` / ``median_ess_share`` (the effective sample size at the fixes over N),
+    ``packets``, ``dropped``, ``steady_steps_without_packet``."""
+    from agents.benchmark.floors import extract_packets
+    from controllers.evaluation import _bar
+
+    spec = recording["spec"]
+    dt = spec.dt
+    rows = []
+    for j in _bar(range(len(recording["seeds"])), f"particle floor ({particles} particles)", progress):
+        L = int(recording["length"][j])
+        pk = extract_packets(recording["obs"][:L + 1, j], recording["pose"][:L + 1, j], dt)
+        sig = packet_sigmas(recording, j, pk["meas"], nominal=nominal_sigma)
+        res = particle_floor_episode(params[j], pk["meas"], pk["arr"], pk["z"], sig, recording["ref"][:, j, :2],
+                                     spec.p_d, L, particles=particles, children=children,
+                                     seed=seed + j)
+        times = dt * np.arange(1, L + 1)
+        steady = times >= spec.steady_start_s - 1e-9
+        ex, re = res["expected"][1:], res["realised"][1:]
+        have = steady & np.isfinite(ex)
+        e = res["ess"][np.isfinite(res["ess"])] / particles
+        nan = math.nan
+        rows.append({"seed": int(recording["seeds"][j]), "steps": L,
+                     "expected_steady_mean": float(ex[have].mean()) if have.any() else nan,
+                     "expected_full_mean": float(np.nanmean(ex)) if np.isfinite(ex).any() else nan,
+                     "realised_steady_mean": float(re[have].mean()) if have.any() else nan,
+                     "realised_full_mean": float(np.nanmean(re)) if np.isfinite(re).any() else nan,
+                     "min_ess_share": float(e.min()) if e.size else nan,
+                     "median_ess_share": float(np.median(e)) if e.size else nan,
+                     "packets": int(len(pk["meas"])), "dropped": int(res["dropped"]),
+                     "steady_steps_without_packet": int((steady & ~have).sum())})
+    return pd.DataFrame(rows)
+
+
+#: the controller whose episodes the Leader floors are computed from: the best generic classical
+#: of the Leader tiers (the packets' timing does not depend on it; their fix noise, through the
+#: range, weakly does)
+LEADER_FOLLOWER = "PROPOSED_IMM_DOB"
+
+
+def _cache_key(rec: dict[str, Any], params: np.ndarray, particles: int, children: int, seed: int) -> str:
+    import hashlib
+    from pathlib import Path
+
+    h = hashlib.sha256()
+    for mod in (Path(__file__), Path(dyn.__file__)):
+        h.update(mod.read_bytes())
+    for name in ("obs", "target", "pose", "ref", "length"):
+        h.update(np.ascontiguousarray(rec[name]).tobytes())
+    h.update(np.ascontiguousarray(params).tobytes())
+    h.update(repr((particles, children, seed, list(map(int, rec["seeds"])))).encode())
+    return h.hexdigest()[:20]
+
+
+def leader_floor(tier: str, seeds: Iterable[int] | None = None, *, particles: int = DEFAULT_PARTICLES,
+                 children: int = DEFAULT_CHILDREN, follower: str = LEADER_FOLLOWER, seed: int = 0,
+                 cache_dir: str | None = None, progress: bool = False) -> pd.DataFrame:
+    """The information floor of a Leader tier, per episode (:func:`bayes_floor` on the episodes
+    ``follower`` plays; None seeds: the tier's published test seeds). With ``cache_dir`` the
+    rows are stored there, keyed by this module's and the kernel's code, the recording, the
+    episode parameters and the settings, and reused while all of them are unchanged."""
+    from pathlib import Path
+
+    from agents.benchmark.floors import _check_seeds, record_episodes
+    from auv_follow_env.tiers import LEADER_TIERS
+
+    if not isinstance(tier, str) or tier not in LEADER_TIERS:
+        raise ValueError(f"tier={tier!r} is invalid: the particle floor is for the Leader tiers {list(LEADER_TIERS)} "
+                         "(the v1 tiers' floor is the Kalman floor, agents.benchmark.floors.information_floor)")
+    seeds = _check_seeds(seeds, tier)
+    rec = record_episodes(tier, seeds, follower, progress=progress)
+    params = episode_params(f"AUVFollow-{tier}-v1", seeds)
+    path = None
+    if cache_dir is not None:
+        path = Path(cache_dir) / f"leader-floor-{tier}-{_cache_key(rec, params, particles, children, seed)}.parquet"
+        if path.is_file():
+            return pd.read_parquet(path)
+    df = bayes_floor(rec, params, particles=particles, children=children, progress=progress, seed=seed)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        df.to_parquet(tmp)
+        tmp.replace(path)
+    return df
