@@ -23,14 +23,15 @@ import dataclasses
 import time
 from pathlib import Path
 
+from agents.training.learned_estimator import EstimatorSettings
 from auv_follow_env.tiers import LEADER_TIERS
 from experiments.outputs import output_path, write_report
 
 RUNS = Path("results/benchmark/runs")
 
 
-def run_name(tier: str, seed: int) -> str:
-    return f"le1-{tier.replace('-', '')}-s{seed}"
+def run_name(tier: str, seed: int, prefix: str = "le1") -> str:
+    return f"{prefix}-{tier.replace('-', '')}-s{seed}"
 
 
 def _curves_png(runs: list[Path], tier: str, path: Path) -> None:
@@ -65,6 +66,9 @@ def main(argv: list[str] | None = None) -> str:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="training seeds (0-9), one run each")
     p.add_argument("--runs-dir", default=str(RUNS), help="where the runs are (default %(default)s)")
     p.add_argument("--retrain", action="store_true", help="train again even where a run exists")
+    p.add_argument("--epochs", type=int, default=EstimatorSettings.epochs,
+                   help="passes over the training episodes for runs trained here (default %(default)s)")
+    p.add_argument("--prefix", default="le1", help="run names: PREFIX-<tier>-s<seed> (default %(default)s)")
     p.add_argument("--out", default=None, help="Markdown output (default: results/learned_estimator_<tier>.md)")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True)
     a = p.parse_args(argv)
@@ -77,9 +81,9 @@ def main(argv: list[str] | None = None) -> str:
     env_id = LEADER_TIERS[a.tier].env_id
     runs = []
     for s in a.seeds:
-        run = Path(a.runs_dir) / run_name(a.tier, s)
+        run = Path(a.runs_dir) / run_name(a.tier, s, a.prefix)
         if a.retrain or not (run / "model.zip").is_file():
-            train_estimator(env_id, run, seed=s, progress=a.progress)
+            train_estimator(env_id, run, seed=s, settings=EstimatorSettings(epochs=a.epochs), progress=a.progress)
         runs.append(run)
     png = out.with_suffix(".png")
     _curves_png(runs, a.tier, png)
