@@ -266,6 +266,22 @@ def test_add_gap_closed_by_hand():
     assert math.isnan(g["Easy/A"])  # no information floor on that tier
 
 
+def test_gap_closed_is_measured_from_the_best_generic_classical():
+    """On a Leader tier the model-aware PROPOSED_PF_DOB may be the best classical row; the gap is
+    the best *generic* classical's to the floor (issue: the share of the generic-to-floor gap)."""
+    board = pd.DataFrame({
+        "tier": ["Leader-Hard"] * 5,
+        "policy": ["PROPOSED_PF_DOB", "PROPOSED_IMM_DOB", "PROPOSED_KF_DOB", "L", floors.INFORMATION_FLOOR],
+        "kind": ["classical", "classical", "classical", "learned", "reference"],
+        "true_steady_mean_iqm": [0.50, 0.60, 0.65, 0.55, 0.20],
+        "best_classical": ["PROPOSED_PF_DOB"] * 5})
+    g = dict(zip(floors.add_gap_closed(board)["policy"], floors.add_gap_closed(board)["gap_closed"], strict=True))
+    assert g["PROPOSED_IMM_DOB"] == 0.0
+    assert g["PROPOSED_PF_DOB"] == pytest.approx(0.25)  # (0.60 - 0.50) / (0.60 - 0.20)
+    assert g["L"] == pytest.approx(0.125)  # (0.60 - 0.55) / 0.40
+    assert g["PROPOSED_KF_DOB"] == pytest.approx(-0.125)
+
+
 def test_bad_arguments():
     with pytest.raises(ValueError, match="tier='S4'"):
         floors.control_floor("S4", [1])
@@ -281,12 +297,17 @@ def test_bad_arguments():
         floors.information_floor("Leader-Hard", [1])
 
 
-def test_a_leader_tier_has_the_control_floor_only():
-    """The control floor (a perfect link) does not depend on the target's model: a Leader tier has
-    it; the information floor (a linear filter's posterior) would be wrong there and is left out."""
-    df = floors.floor_episodes("Leader-Easy", [1, 2], controllers=["PROPOSED_KF_DOB"])
-    assert set(df["policy"]) == {floors.CONTROL_FLOOR}
-    assert (df["true_steady_mean"] < 0.05).all() and (df["tier"] == "Leader-Easy").all()
+def test_a_leader_tier_has_both_floors_its_information_floor_a_particle_filter():
+    """The control floor (a perfect link) does not depend on the target's model; a Leader tier's
+    information floor is the particle filter under the true generator (a linear filter's
+    posterior would be wrong there), and lies above the control floor."""
+    df = floors.floor_episodes("Leader-Hard", [1], controllers=["PROPOSED_KF_DOB"])
+    assert set(df["policy"]) == {floors.CONTROL_FLOOR, floors.INFORMATION_FLOOR}
+    assert (df["tier"] == "Leader-Hard").all() and (df["kind"] == floors.REFERENCE_KIND).all()
+    ctrl = df.loc[df["policy"] == floors.CONTROL_FLOOR].iloc[0]
+    info = df.loc[df["policy"] == floors.INFORMATION_FLOOR].iloc[0]
+    assert ctrl["true_steady_mean"] < 0.05
+    assert info["run"].startswith("particle filter") and info["true_steady_mean"] > ctrl["true_steady_mean"]
 
 
 def test_benchmark_with_floors_and_report(tmp_path):

@@ -697,22 +697,25 @@ def estimator_error(recording: dict[str, Any], config: Any = None) -> np.ndarray
 
 def add_gap_closed(board: pd.DataFrame, metric: str = "true_steady_mean") -> pd.DataFrame:
     """Add ``gap_closed`` to a leaderboard: per tier with an :data:`INFORMATION_FLOOR` row and
-    a best classical baseline, (best classical IQM - method IQM) / (best classical IQM -
-    information floor IQM): 0 for the best classical, 1 for a method at the information floor,
-    negative for one worse than the best classical; NaN for reference rows and tiers without a
-    floor."""
+    a classical baseline, (best generic classical IQM - method IQM) / (best generic classical
+    IQM - information floor IQM): 0 for the best generic classical, 1 for a method at the
+    information floor, negative for one worse; NaN for reference rows and tiers without a floor.
+    *Generic*: not one of ``controllers.MODEL_AWARE_CONTROLLERS`` (which know a Leader tier's
+    generator); on the v1 tiers that is every classical row, the best classical."""
+    from controllers import MODEL_AWARE_CONTROLLERS
+
     out = board.copy()
     out["gap_closed"] = np.nan
     col = f"{metric}_iqm"
-    if col not in out or "best_classical" not in out:
+    if col not in out or "kind" not in out:
         return out
     for _, idx in out.groupby("tier", sort=False).groups.items():
         sub = out.loc[idx]
         floor = sub[(sub["policy"] == INFORMATION_FLOOR) & (sub["kind"] == REFERENCE_KIND)]
-        best = sub["best_classical"].iloc[0]
-        if floor.empty or best is None or (isinstance(best, float) and math.isnan(best)):
+        generic = sub[(sub["kind"] == "classical") & ~sub["policy"].isin(list(MODEL_AWARE_CONTROLLERS))]
+        if floor.empty or generic.empty:
             continue
-        b = float(sub.loc[sub["policy"] == best, col].iloc[0])
+        b = float(generic[col].min())
         f = float(floor[col].iloc[0])
         if not b > f:
             continue

@@ -271,7 +271,10 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
              "same against its own base controller (obs: what its observation carries: raw = the env's fields "
              "and the base action, estimator = also a target filter's estimate), and, where that filter is one "
              "its base lacks, against the same law on that filter; a terminated episode scores the loss "
-             "threshold.", ""]
+             "threshold" + ("; gap closed = (best generic classical IQM - this IQM) / (best generic classical IQM - "
+                            "information floor IQM), generic: not a model-aware controller (which knows a Leader "
+                            "tier's generator)" if "gap_closed" in board and board["gap_closed"].notna().any()
+                            else "") + ".", ""]
     m0 = metrics[0]
     for tier, sub in board.groupby("tier", sort=False):
         best = sub["best_classical"].iloc[0]

@@ -703,14 +703,16 @@ def _columns_html(board: pd.DataFrame, gap: bool, has_base: bool, has_filtered: 
                              float(floor.iloc[0]), float(worst)))
         if len(ref) and rows:
             g, tier, b, f, worst = min(rows)
-            example = (f" On {html.escape(tier)} the best classical ({b:.4f} m) is only {g:.4f} m above the "
+            example = (f" On {html.escape(tier)} the best generic classical ({b:.4f} m) is only {g:.4f} m above the "
                        f"information floor ({f:.4f} m), so a policy d metres worse than the best classical gets "
                        f"-d / {g:.4f}: the lowest value there is {worst:.2f}.")
-        items.append(("gap closed [-]", "(best classical IQM - this IQM) / (best classical IQM - information "
-                                        "floor IQM): how much of the gap between the best classical baseline "
-                                        "and the information floor (the error of an ideal estimate from the "
-                                        "packets received, which no follower can beat) a policy closes. 0 is "
-                                        "the best classical, 1 reaches the floor. It is measured in units of "
+        items.append(("gap closed [-]", "(best generic classical IQM - this IQM) / (best generic classical IQM - "
+                                        "information floor IQM): how much of the gap between the best generic "
+                                        "classical baseline (on a Leader tier: not the model-aware particle "
+                                        "filter, which knows the generator) and the information floor (the error "
+                                        "of an ideal estimate from the packets received, which no follower can "
+                                        "beat) a policy closes. 0 is the best generic classical, 1 reaches the "
+                                        "floor. It is measured in units of "
                                         "that gap, so where the gap is small a policy that is worse than the "
                                         "best classical gets a very negative value: it says how many gaps "
                                         "worse it is, not that anything is broken." + example +
