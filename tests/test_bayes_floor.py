@@ -33,6 +33,47 @@ def test_threshold_redraw_is_the_truncated_erlang():
     assert draws.mean() == pytest.approx(expect, rel=0.02)
 
 
+def test_first_mode_age_is_the_truncated_equilibrium_age():
+    """An episode's first wander mode starts with a length-biased Gamma(k + 1) duration and a
+    uniform position in it: its age is the equilibrium age, density S_k(a) / mean. Given no
+    switch for ``elapsed`` seconds, the Gibbs move draws it from that law truncated to a >= elapsed."""
+    k, mean, elapsed = int(dyn.LD_K), 6.0, 4.0
+    lam = k / mean
+    rs = np.array([777], dtype=np.uint64)
+    proc = np.zeros((1, dyn.NR))
+    draws = np.array([bf._erlang_age(k, lam, elapsed, rs, proc, 0) for _ in range(20000)])
+    assert draws.min() >= elapsed
+    grid = np.linspace(elapsed, elapsed + 20 * mean, 20001)
+    dens = stats.gamma(a=k, scale=1.0 / lam).sf(grid)
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (dens[1:] + dens[:-1]) * np.diff(grid))])
+    cum /= cum[-1]
+    assert stats.kstest(draws, lambda x: np.interp(x, grid, cum)).pvalue > 1e-3
+
+
+def test_straight_start_odds_match_the_generators_start():
+    """A leader that has gone straight since it started is a survey leg or a wander cruise. With
+    nothing travelled the odds are leader_init's shares; after d metres a leg survives with
+    P(progress + d < thr), thr ~ U[lo, hi], progress ~ U[0, thr] (here by simulation), and a
+    cruise after t seconds with the equilibrium Erlang's survival (1 / k) sum_j S_(j+1)(lam t)."""
+    p = np.zeros((1, dyn.NP))
+    p[0, [dyn.P_LD_MODES, dyn.P_LD_SURVEY, dyn.P_LD_UC, dyn.P_LD_LEG, dyn.P_LD_RS]] = [2.0, 0.5, 0.5, 10.0, 0.25]
+    p[0, [dyn.P_LD_MC, dyn.P_LD_MT, dyn.P_LD_ML, dyn.P_LD_MS]] = [8.0, 5.0, 6.0, 4.0]
+    leg0, cruise0 = bf._straight_start_odds(p, 0, 0.0, 0.0)
+    t_leg, t_turn = 10.0 / 0.5, math.pi / 0.25
+    assert leg0 == pytest.approx(0.5 * t_leg / (t_leg + t_turn))
+    assert cruise0 == pytest.approx(0.5 * 0.5 * 8.0 / (0.5 * 8.0 + 2 * 0.15 * 5.0 + 0.1 * 6.0 + 0.1 * 4.0))
+    rng = np.random.default_rng(0)
+    thr = rng.uniform(9.5, 10.5, 400000)
+    prog = rng.uniform(0.0, thr)
+    for d in (3.0, 9.7):
+        leg, _ = bf._straight_start_odds(p, 0, d, 0.0)
+        assert leg / leg0 == pytest.approx(np.mean(prog + d < thr), abs=3e-3)
+    _, cruise = bf._straight_start_odds(p, 0, 0.0, 5.0)
+    x = 4 / 8.0 * 5.0
+    expect = np.mean([stats.gamma(a=j + 1).sf(x) for j in range(4)])
+    assert cruise / cruise0 == pytest.approx(expect, rel=1e-9)
+
+
 def _median(points: np.ndarray) -> np.ndarray:
     """The spatial median and the mean distance to it of points used as reference points
     (offset zero: the reference point is the target's position)."""
@@ -84,7 +125,7 @@ def test_one_mode_leader_matches_the_kalman_floor():
         pk = extract_packets(rec["obs"][:L + 1, j], rec["pose"][:L + 1, j], spec.dt)
         sig = bf.packet_sigmas(rec, j, pk["meas"], nominal=True)  # the Kalman floor's sigma convention
         res = bf.particle_floor_episode(params[j], pk["meas"], pk["arr"], pk["z"], sig, rec["ref"][:, j, :2],
-                                        spec.p_d, L, particles=2048, seed=j)
+                                        spec.p_d, L, bf.warmup_start(rec, j), particles=2048, seed=j)
         pf = float(np.mean(res["expected"][1:][steady]))
         ratios.append(pf / kf["expected_steady_mean"])
         # the filter's median is an estimator as good as the EKF's (realised errors within 10 %)
@@ -99,10 +140,10 @@ def test_floor_rows_and_errors():
     z = np.zeros((1, 5))
     one = np.zeros(1, dtype=np.int64)
     with pytest.raises(ValueError, match="particles=1"):
-        bf.particle_floor_episode(np.zeros(dyn.NP), one, one, z, np.ones(1), np.zeros((2, 2)), (0.0, 0.0), 1,
+        bf.particle_floor_episode(np.zeros(dyn.NP), one, one, z, np.ones(1), np.zeros((2, 2)), (0.0, 0.0), 1, 0,
                                   particles=1)
     with pytest.raises(ValueError, match="children=0"):
-        bf.particle_floor_episode(np.zeros(dyn.NP), one, one, z, np.ones(1), np.zeros((2, 2)), (0.0, 0.0), 1,
+        bf.particle_floor_episode(np.zeros(dyn.NP), one, one, z, np.ones(1), np.zeros((2, 2)), (0.0, 0.0), 1, 0,
                                   children=0)
 
 
