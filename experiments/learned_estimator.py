@@ -12,8 +12,8 @@ same observations; per episode the mean error of the present reference point ove
 over episodes (95 % bootstrap CI), paired ratios against the IMM. The closed-loop scores (the
 estimator feeding the tracking law) are the leaderboard's rows "Learned estimator ...".
 
-    python -m experiments.learned_estimator                       # Leader-Hard, seeds 0-2
-    python -m experiments.learned_estimator --tier Leader-Medium
+    python -m experiments.learned_estimator --tier Leader-Hard --prefix le2 --epochs 40   # the leaderboard's runs
+    python -m experiments.learned_estimator --tier Leader-Medium                           # (le1: 20 epochs)
 """
 
 from __future__ import annotations
@@ -114,7 +114,9 @@ def main(argv: list[str] | None = None) -> str:
             row.append(f"{le.iqm(e):.3f}; {100 * r:+.0f} % ({100 * lo:+.0f} to {100 * hi:+.0f}) vs IMM; {gs}")
         rows.append("| " + " | ".join(row) + " |")
     lines = [f"# Learned estimator on {a.tier}", "",
-             f"Reproduce: `python -m experiments.learned_estimator --tier {a.tier}` (method in its docstring; "
+             f"Reproduce: `python -m experiments.learned_estimator --tier {a.tier}"
+             + (f" --prefix {a.prefix} --epochs {a.epochs}" if a.prefix != "le1" else "") +
+             "` (method in its docstring; "
              f"{time.perf_counter() - t0:.0f} s of scoring here). Learning curves: `{png.name}`.", "",
              "Open-loop error of the present reference point [m] (per episode the mean over t >= 10 s; IQM over "
              "episodes, 95 % bootstrap CI). Learned: IQM; its paired IQM ratio against the IMM (the generic filter it "
