@@ -110,13 +110,14 @@ def _plot(per: dict, n: int, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
 
-    fig, ax = plt.subplots(2, len(per), figsize=(4.2 * len(per), 8), squeeze=False)
+    fig, ax = plt.subplots(2, len(per), figsize=(5.0 * len(per), 8.4), squeeze=False)
     for c, (tier, (d1, d2, d1c)) in enumerate(per.items()):
         x = d1c.set_index("seed").loc[d2["seed"], "expected_steady_mean"].to_numpy()
         y = d2["expected_steady_mean"].to_numpy()
         a0 = ax[0, c]
-        a0.loglog(x, y, ".", alpha=0.7)
+        a0.plot(x, y, ".", alpha=0.7)
         lo, hi = np.nanmin([np.nanmin(x), np.nanmin(y)]), np.nanmax([np.nanmax(x), np.nanmax(y)])
         a0.plot([lo, hi], [lo, hi], "k-", lw=0.8)
         a0.set(title=f"{tier}: floor per episode, N and 2N", xlabel=f"N = {n} [m]", ylabel=f"2N = {2 * n} [m]")
@@ -124,8 +125,12 @@ def _plot(per: dict, n: int, path: Path) -> None:
         a1.loglog(d1["expected_steady_mean"], d1["realised_steady_mean"], ".", alpha=0.7)
         e = d1["expected_steady_mean"]
         a1.plot([e.min(), e.max()], [e.min(), e.max()], "k-", lw=0.8)
-        a1.set(title=f"{tier}: realised vs expected (N, 100 episodes)", xlabel="expected (the floor) [m]",
+        a1.set(title=f"{tier}: realised vs expected, N", xlabel="expected (the floor) [m]",
                ylabel="realised: the median's error [m]")
+    for a_ in ax.ravel():
+        a_.xaxis.set_minor_formatter(NullFormatter())
+        a_.yaxis.set_minor_formatter(NullFormatter())
+        a_.grid(alpha=0.3, which="both")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
