@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from agents.benchmark.bayes_floor import DEFAULT_CHILDREN, DEFAULT_PARTICLES, leader_floor
+from agents.benchmark.bayes_floor import DEFAULT_CHILDREN, DEFAULT_PARTICLES
+from agents.benchmark.floors import leader_floor
 from agents.benchmark.stats import iqm
 from auv_follow_env.tiers import LEADER_TIERS
 

@@ -12,6 +12,7 @@ import pytest
 from scipy import stats
 
 from agents.benchmark import bayes_floor as bf
+from agents.benchmark import floors
 from agents.benchmark.floors import _episode_floor, extract_packets, record_episodes
 from auv_follow_env import dynamics as dyn
 
@@ -136,7 +137,7 @@ def test_one_mode_leader_matches_the_kalman_floor():
 
 def test_floor_rows_and_errors():
     with pytest.raises(ValueError, match="tier='Hard'.*Leader"):
-        bf.leader_floor("Hard")
+        floors.leader_floor("Hard")
     z = np.zeros((1, 5))
     one = np.zeros(1, dtype=np.int64)
     with pytest.raises(ValueError, match="particles=1"):
@@ -151,11 +152,11 @@ def test_leader_floor_is_cached_and_reused(tmp_path):
     """Two calls with a cache directory: the second reads the stored rows (same numbers, no
     filter run), and the rows have the documented columns with an expected error > 0."""
     kw = {"particles": 256, "children": 2, "cache_dir": str(tmp_path)}
-    a = bf.leader_floor("Leader-Hard", [210], **kw)
+    a = floors.leader_floor("Leader-Hard", [210], **kw)
     files = list(tmp_path.glob("leader-floor-Leader-Hard-*.parquet"))
     assert len(files) == 1
     mtime = files[0].stat().st_mtime_ns
-    b = bf.leader_floor("Leader-Hard", [210], **kw)
+    b = floors.leader_floor("Leader-Hard", [210], **kw)
     assert files[0].stat().st_mtime_ns == mtime
     assert a.equals(b)
     assert {"expected_steady_mean", "realised_steady_mean", "min_ess_share", "dropped"} <= set(a.columns)

@@ -58,16 +58,12 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import pandas as pd
 from numba import njit, prange
 
 from auv_follow_env import dynamics as dyn
 
-__all__ = ["BAYES_FLOOR", "DEFAULT_PARTICLES", "DEFAULT_CHILDREN", "episode_params", "packet_sigmas", "warmup_start",
-           "particle_floor_episode", "bayes_floor", "leader_floor"]
-
-#: leaderboard label of the Leader tiers' information floor
-BAYES_FLOOR = "information floor"
+__all__ = ["DEFAULT_PARTICLES", "DEFAULT_CHILDREN", "episode_params", "packet_sigmas", "warmup_start",
+           "particle_floor_episode"]
 #: particles per episode by default (docs/benchmark.md, "Floors": the floor for N and 2N)
 DEFAULT_PARTICLES = 8192
 #: continuations of each particle weighted at a fix (:func:`particle_floor_episode`)
@@ -594,94 +590,3 @@ def warmup_start(recording: dict[str, Any], j: int) -> int:
     (:attr:`auv_follow_env.params.EnvConfig.warmup_steps`: ceil(warmup_s / dt))."""
     w = float(recording["conditions"]["warmup_s"][j])
     return -int(math.ceil(w / recording["spec"].dt - 1e-9))
-
-
-def bayes_floor(recording: dict[str, Any], params: np.ndarray, *, particles: int = DEFAULT_PARTICLES,
-                children: int = DEFAULT_CHILDREN,
-                nominal_sigma: bool = False, progress: bool = False, seed: int = 0) -> pd.DataFrame:
-    """The particle floor of every episode of a recording
-    (:func:`agents.benchmark.floors.record_episodes`), one row per seed: ``expected_steady_mean``
-    / ``expected_full_mean`` (the floor), ``realised_steady_mean`` / ``realised_full_mean``,
-    ``min_ess_share`` / ``median_ess_share`` (the effective sample size at the fixes over N),
-    ``packets``, ``dropped``, ``steady_steps_without_packet``."""
-    from agents.benchmark.floors import extract_packets
-    from controllers.evaluation import _bar
-
-    spec = recording["spec"]
-    dt = spec.dt
-    rows = []
-    for j in _bar(range(len(recording["seeds"])), f"particle floor ({particles} particles)", progress):
-        L = int(recording["length"][j])
-        pk = extract_packets(recording["obs"][:L + 1, j], recording["pose"][:L + 1, j], dt)
-        sig = packet_sigmas(recording, j, pk["meas"], nominal=nominal_sigma)
-        res = particle_floor_episode(params[j], pk["meas"], pk["arr"], pk["z"], sig, recording["ref"][:, j, :2],
-                                     spec.p_d, L, warmup_start(recording, j), particles=particles,
-                                     children=children, seed=seed + j)
-        times = dt * np.arange(1, L + 1)
-        steady = times >= spec.steady_start_s - 1e-9
-        ex, re = res["expected"][1:], res["realised"][1:]
-        have = steady & np.isfinite(ex)
-        e = res["ess"][np.isfinite(res["ess"])] / particles
-        nan = math.nan
-        rows.append({"seed": int(recording["seeds"][j]), "steps": L,
-                     "expected_steady_mean": float(ex[have].mean()) if have.any() else nan,
-                     "expected_full_mean": float(np.nanmean(ex)) if np.isfinite(ex).any() else nan,
-                     "realised_steady_mean": float(re[have].mean()) if have.any() else nan,
-                     "realised_full_mean": float(np.nanmean(re)) if np.isfinite(re).any() else nan,
-                     "min_ess_share": float(e.min()) if e.size else nan,
-                     "median_ess_share": float(np.median(e)) if e.size else nan,
-                     "packets": int(len(pk["meas"])), "dropped": int(res["dropped"]),
-                     "steady_steps_without_packet": int((steady & ~have).sum())})
-    return pd.DataFrame(rows)
-
-
-#: the controller whose episodes the Leader floors are computed from: the best generic classical
-#: of the Leader tiers (the packets' timing does not depend on it; their fix noise, through the
-#: range, weakly does)
-LEADER_FOLLOWER = "PROPOSED_IMM_DOB"
-
-
-def _cache_key(rec: dict[str, Any], params: np.ndarray, particles: int, children: int, seed: int) -> str:
-    import hashlib
-    from pathlib import Path
-
-    h = hashlib.sha256()
-    for mod in (Path(__file__), Path(dyn.__file__)):
-        h.update(mod.read_bytes())
-    for name in ("obs", "target", "pose", "ref", "length"):
-        h.update(np.ascontiguousarray(rec[name]).tobytes())
-    h.update(np.ascontiguousarray(params).tobytes())
-    h.update(repr((particles, children, seed, list(map(int, rec["seeds"])))).encode())
-    return h.hexdigest()[:20]
-
-
-def leader_floor(tier: str, seeds: Iterable[int] | None = None, *, particles: int = DEFAULT_PARTICLES,
-                 children: int = DEFAULT_CHILDREN, follower: str = LEADER_FOLLOWER, seed: int = 0,
-                 cache_dir: str | None = None, progress: bool = False) -> pd.DataFrame:
-    """The information floor of a Leader tier, per episode (:func:`bayes_floor` on the episodes
-    ``follower`` plays; None seeds: the tier's published test seeds). With ``cache_dir`` the
-    rows are stored there, keyed by this module's and the kernel's code, the recording, the
-    episode parameters and the settings, and reused while all of them are unchanged."""
-    from pathlib import Path
-
-    from agents.benchmark.floors import _check_seeds, record_episodes
-    from auv_follow_env.tiers import LEADER_TIERS
-
-    if not isinstance(tier, str) or tier not in LEADER_TIERS:
-        raise ValueError(f"tier={tier!r} is invalid: the particle floor is for the Leader tiers {list(LEADER_TIERS)} "
-                         "(the v1 tiers' floor is the Kalman floor, agents.benchmark.floors.information_floor)")
-    seeds = _check_seeds(seeds, tier)
-    rec = record_episodes(tier, seeds, follower, progress=progress)
-    params = episode_params(f"AUVFollow-{tier}-v1", seeds)
-    path = None
-    if cache_dir is not None:
-        path = Path(cache_dir) / f"leader-floor-{tier}-{_cache_key(rec, params, particles, children, seed)}.parquet"
-        if path.is_file():
-            return pd.read_parquet(path)
-    df = bayes_floor(rec, params, particles=particles, children=children, progress=progress, seed=seed)
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        df.to_parquet(tmp)
-        tmp.replace(path)
-    return df

@@ -47,6 +47,14 @@ from numba import njit
 from scipy import special
 
 import auv_follow_env  # noqa: F401  (registers the ids)
+from agents.benchmark.bayes_floor import (
+    DEFAULT_CHILDREN,
+    DEFAULT_PARTICLES,
+    episode_params,
+    packet_sigmas,
+    particle_floor_episode,
+    warmup_start,
+)
 from auv_follow_env.layout import OBS_INDEX_V1
 from auv_follow_env.metrics import tracking_metrics
 from auv_follow_env.perfect_link import perfect_link_observation
@@ -54,7 +62,7 @@ from auv_follow_env.perfect_link import perfect_link_observation
 __all__ = ["CONTROL_FLOOR", "INFORMATION_FLOOR", "REFERENCE_KIND", "DEFAULT_FOLLOWER", "ControlFloor",
            "perfect_link_episodes", "control_floor",
            "record_episodes", "extract_packets", "mean_norm_2d", "delayed_kalman", "information_floor",
-           "floor_episodes", "add_gap_closed"]
+           "floor_episodes", "add_gap_closed", "leader_floor", "leader_bayes_floor", "LEADER_FOLLOWER"]
 
 #: leaderboard labels of the two reference rows
 CONTROL_FLOOR = "control floor"
@@ -634,8 +642,6 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
         inf = information_floor(tier, seeds, follower, progress=progress)
         run = "kalman"
     else:  # a Leader tier: the particle filter under the true generator (agents/benchmark/bayes_floor.py)
-        from agents.benchmark.bayes_floor import DEFAULT_PARTICLES, leader_floor
-
         inf = leader_floor(tier, seeds, cache_dir=None if cache_dir is None else str(cache_dir), progress=progress)
         run = f"particle filter, {DEFAULT_PARTICLES} particles"
     frames.append(pd.DataFrame({"policy": INFORMATION_FLOOR, "run": run, "seed": inf["seed"],
@@ -656,6 +662,98 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
     df["kind"] = REFERENCE_KIND
     df["fail_error_m"] = bench_max_distance(env_id)
     return df.merge(_condition_columns(env_id, seeds, spec), on="seed", how="left")
+
+
+# --- the Leader tiers' information floor (agents/benchmark/bayes_floor.py) -------------------
+
+def leader_bayes_floor(recording: dict[str, Any], params: np.ndarray, *, particles: int = DEFAULT_PARTICLES,
+                children: int = DEFAULT_CHILDREN,
+                nominal_sigma: bool = False, progress: bool = False, seed: int = 0) -> pd.DataFrame:
+    """The particle floor (:mod:`agents.benchmark.bayes_floor`) of every episode of a recording
+    (:func:`record_episodes`), one row per seed: ``expected_steady_mean``
+    / ``expected_full_mean`` (the floor), ``realised_steady_mean`` / ``realised_full_mean``,
+    ``min_ess_share`` / ``median_ess_share`` (the effective sample size at the fixes over N),
+    ``packets``, ``dropped``, ``steady_steps_without_packet``."""
+    from controllers.evaluation import _bar
+
+    spec = recording["spec"]
+    dt = spec.dt
+    rows = []
+    for j in _bar(range(len(recording["seeds"])), f"particle floor ({particles} particles)", progress):
+        L = int(recording["length"][j])
+        pk = extract_packets(recording["obs"][:L + 1, j], recording["pose"][:L + 1, j], dt)
+        sig = packet_sigmas(recording, j, pk["meas"], nominal=nominal_sigma)
+        res = particle_floor_episode(params[j], pk["meas"], pk["arr"], pk["z"], sig, recording["ref"][:, j, :2],
+                                     spec.p_d, L, warmup_start(recording, j), particles=particles,
+                                     children=children, seed=seed + j)
+        times = dt * np.arange(1, L + 1)
+        steady = times >= spec.steady_start_s - 1e-9
+        ex, re = res["expected"][1:], res["realised"][1:]
+        have = steady & np.isfinite(ex)
+        e = res["ess"][np.isfinite(res["ess"])] / particles
+        nan = math.nan
+        rows.append({"seed": int(recording["seeds"][j]), "steps": L,
+                     "expected_steady_mean": float(ex[have].mean()) if have.any() else nan,
+                     "expected_full_mean": float(np.nanmean(ex)) if np.isfinite(ex).any() else nan,
+                     "realised_steady_mean": float(re[have].mean()) if have.any() else nan,
+                     "realised_full_mean": float(np.nanmean(re)) if np.isfinite(re).any() else nan,
+                     "min_ess_share": float(e.min()) if e.size else nan,
+                     "median_ess_share": float(np.median(e)) if e.size else nan,
+                     "packets": int(len(pk["meas"])), "dropped": int(res["dropped"]),
+                     "steady_steps_without_packet": int((steady & ~have).sum())})
+    return pd.DataFrame(rows)
+
+
+#: the controller whose episodes the Leader floors are computed from: the best generic classical
+#: of the Leader tiers (the packets' timing does not depend on it; their fix noise, through the
+#: range, weakly does)
+LEADER_FOLLOWER = "PROPOSED_IMM_DOB"
+
+
+def _cache_key(rec: dict[str, Any], params: np.ndarray, particles: int, children: int, seed: int) -> str:
+    import hashlib
+
+    from agents.benchmark import bayes_floor
+    from auv_follow_env import dynamics
+
+    h = hashlib.sha256()
+    for mod in (Path(__file__), Path(bayes_floor.__file__), Path(dynamics.__file__)):
+        h.update(mod.read_bytes())
+    for name in ("obs", "target", "pose", "ref", "length"):
+        h.update(np.ascontiguousarray(rec[name]).tobytes())
+    h.update(np.ascontiguousarray(params).tobytes())
+    h.update(repr((particles, children, seed, list(map(int, rec["seeds"])))).encode())
+    return h.hexdigest()[:20]
+
+
+def leader_floor(tier: str, seeds: Iterable[int] | None = None, *, particles: int = DEFAULT_PARTICLES,
+                 children: int = DEFAULT_CHILDREN, follower: str = LEADER_FOLLOWER, seed: int = 0,
+                 cache_dir: str | Path | None = None, progress: bool = False) -> pd.DataFrame:
+    """The information floor of a Leader tier, per episode (:func:`leader_bayes_floor` on the episodes
+    ``follower`` plays; None seeds: the tier's published test seeds). With ``cache_dir`` the
+    rows are stored there, keyed by this module's and the kernel's code, the recording, the
+    episode parameters and the settings, and reused while all of them are unchanged."""
+    from auv_follow_env.tiers import LEADER_TIERS
+
+
+    if not isinstance(tier, str) or tier not in LEADER_TIERS:
+        raise ValueError(f"tier={tier!r} is invalid: the particle floor is for the Leader tiers {list(LEADER_TIERS)} "
+                         "(the v1 tiers' floor is the Kalman floor, agents.benchmark.floors.information_floor)")
+    seeds = _check_seeds(seeds, tier)
+    rec = record_episodes(tier, seeds, follower, progress=progress)
+    params = episode_params(f"AUVFollow-{tier}-v1", seeds)
+    path = None
+    if cache_dir is not None:
+        path = Path(cache_dir) / f"leader-floor-{tier}-{_cache_key(rec, params, particles, children, seed)}.parquet"
+        if path.is_file():
+            return pd.read_parquet(path)
+    df = leader_bayes_floor(rec, params, particles=particles, children=children, progress=progress, seed=seed)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        df.to_parquet(tmp)
+        tmp.replace(path)
+    return df
 
 
 def estimator_error(recording: dict[str, Any], config: Any = None) -> np.ndarray:

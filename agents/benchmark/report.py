@@ -208,6 +208,20 @@ def _txt(value: Any) -> str:
     return str(value).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
 
 
+#: the widest tick label of the leaderboard chart [characters]: a longer policy name is wrapped
+#: (with automargin, one very long label left the plot area no width and plotly.js threw "Something
+#: went wrong with axis scaling")
+LABEL_WIDTH = 70
+
+
+def _wrapped(value: Any, width: int = LABEL_WIDTH) -> str:
+    """:func:`_txt` of a label, wrapped at word boundaries into lines of at most ``width``
+    characters (plotly's ``<br>``)."""
+    import textwrap
+
+    return "<br>".join(_txt(line) for line in textwrap.wrap(str(value), width)) or _txt(value)
+
+
 # --- checking what the folder holds ----------------------------------------------------------
 
 _FILES = ("episodes.parquet", "leaderboard.csv", "benchmark.json", "traces.parquet")
@@ -457,7 +471,7 @@ def _fig_leaderboard(board: pd.DataFrame, styles: dict[str, _Style]):
             p = r["policy"]
             st = styles[p]
             fig.add_trace(go.Scatter(
-                x=[r[f"{m}_iqm"]], y=[_txt(p)], mode="markers", name=_txt(p), legendgroup=st.group,
+                x=[r[f"{m}_iqm"]], y=[_wrapped(p)], mode="markers", name=_txt(p), legendgroup=st.group,
                 showlegend=p not in seen, legendrank=st.rank, visible=st.visible,
                 marker={"color": st.color, "size": 11, "symbol": "diamond" if st.family == "floor" else "circle",
                         "line": {"color": "#222", "width": 0.5}},
