@@ -178,21 +178,28 @@ def _erlang_remaining(k, lam, elapsed, rs, proc, i):
 
 
 @njit(cache=True)
-def _erlang_age(k, lam, elapsed, rs, proc, i):
-    """The age of a renewal process with Erlang(k, lam) durations, started in equilibrium, given
-    that it has not renewed for ``elapsed``: the equilibrium age law S_k(a) / mean is the uniform
-    mixture of Erlang(j + 1, lam), j < k; truncated to a >= elapsed, component j keeps the weight
-    S_(j+1)(elapsed) and is drawn by :func:`_erlang_remaining`."""
-    x = lam * elapsed
+def _erlang_sf_sum(k, x):
+    """e^x sum_(j < k) S_(j + 1)(x), S_m the survival function of a standard Erlang(m) (rate 1):
+    sum_(j < k) sum_(i <= j) x^i / i!."""
     w = 1.0
-    cum = 1.0  # S_1(elapsed) e^x: the survival functions, scaled by e^x
+    cum = 1.0  # e^x S_(j + 1)(x)
     tot = 0.0
     for j in range(k):
         if j > 0:
             w *= x / j
             cum += w
         tot += cum
-    u = dyn.uniform01(rs, i) * tot
+    return tot
+
+
+@njit(cache=True)
+def _erlang_age(k, lam, elapsed, rs, proc, i):
+    """The age of a renewal process with Erlang(k, lam) durations, started in equilibrium, given
+    that it has not renewed for ``elapsed``: the equilibrium age law S_k(a) / mean is the uniform
+    mixture of Erlang(j + 1, lam), j < k; truncated to a >= elapsed, component j keeps the weight
+    S_(j+1)(elapsed) and is drawn by :func:`_erlang_remaining`."""
+    x = lam * elapsed
+    u = dyn.uniform01(rs, i) * _erlang_sf_sum(k, x)
     w = 1.0
     cum = 1.0
     acc = cum
@@ -209,15 +216,7 @@ def _erlang_age(k, lam, elapsed, rs, proc, i):
 def _erlang_sf_mean(k, x):
     """(1 / k) sum_(j < k) S_(j + 1)(x): the probability that an equilibrium Erlang(k) renewal
     process (rate 1, x in its time units) does not renew within x."""
-    w = 1.0
-    cum = 1.0
-    tot = 0.0
-    for j in range(k):
-        if j > 0:
-            w *= x / j
-            cum += w
-        tot += cum
-    return math.exp(-x) * tot / k
+    return math.exp(-x) * _erlang_sf_sum(k, x) / k
 
 
 @njit(cache=True)
