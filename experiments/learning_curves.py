@@ -7,9 +7,11 @@ and the floors on the same evaluation seeds.
 Each run's ``eval.csv`` holds, every million steps, the steady-state (t >= 10 s) true-reference
 error over its fixed evaluation seeds (990,000-990,031 by default, 500-531 for runs made before
 those were held out). On each run's own seeds and tier this script scores the best classical
-controllers (PROPOSED_KF_DOB and MPC) and computes the information floor
-(agents/benchmark/floors.py), and draws them as horizontal lines: a curve that flattens above
-them has converged to something worse; one still falling was stopped early.
+controllers (PROPOSED_KF_DOB and MPC; on a Leader tier also the generic PROPOSED_IMM_DOB) and
+computes the information floor (agents/benchmark/floors.py: the Kalman floor on the v1 tiers, the
+Bayes particle floor on the Leader tiers, cached in results/tmp/bench-cache), and draws them as
+horizontal lines: a curve that flattens above them has converged to something worse; one still
+falling was stopped early.
 Writes the PNG and a Markdown table (final IQM per run, steps, wall-clock minutes).
 """
 
@@ -28,6 +30,8 @@ from experiments.outputs import output_path, write_report
 RUNS = Path("results/benchmark/runs")
 OUT = Path("results/benchmark/learning_curves_bppo.png")
 BASELINES = ("PROPOSED_KF_DOB", "MPC")
+#: where the Leader tiers' particle floors are cached (the leaderboard's --cache: computed once per seed set)
+FLOOR_CACHE = Path("results/tmp/bench-cache")
 
 
 def _iqm(x: np.ndarray) -> float:
@@ -53,7 +57,7 @@ def references(env_id: str, seeds: list[int]) -> dict[str, float]:
     import gymnasium as gym
 
     from agents.benchmark import floors
-    from auv_follow_env.tiers import TIERS, check_training_seeds
+    from auv_follow_env.tiers import LEADER_TIERS, TIERS, check_training_seeds
     from controllers import make_controller
     from controllers.evaluation import evaluate_batched
 
@@ -63,9 +67,13 @@ def references(env_id: str, seeds: list[int]) -> dict[str, float]:
     names = BASELINES if tier in TIERS else BASELINES + ("PROPOSED_IMM_DOB",)  # a Leader tier: the generic IMM too
     df = evaluate_batched([make_controller(n, spec) for n in names], env_id, seeds=seeds, progress=False)
     out = {n: _iqm(df.loc[df["policy"] == n, "true_steady_mean"].to_numpy()) for n in names}
-    if tier in TIERS:  # (a Leader tier has no information floor yet)
+    if tier in TIERS:
         inf = floors.information_floor(tier, seeds)
-        out["information floor"] = _iqm(inf["expected_steady_mean"].dropna().to_numpy())
+    elif tier in LEADER_TIERS:  # the Bayes floor (particle filter under the true generator), cached
+        inf = floors.leader_floor(tier, seeds, cache_dir=FLOOR_CACHE, progress=True)
+    else:
+        return out
+    out["information floor"] = _iqm(inf["expected_steady_mean"].dropna().to_numpy())
     return out
 
 
@@ -155,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
             cfg = i["cfg"]
             refs = ref_sets[tuple(i["seeds"])]
             best = min(v for n, v in refs.items() if n != "information floor")
-            floor = f"{refs['information floor']:.4f}" if "information floor" in refs else "- (Leader tier)"
+            floor = f"{refs['information floor']:.4f}" if "information floor" in refs else "-"
             lines.append(f"| {label} | {env} | {i['mode']} | {cfg.get('run', {}).get('observation', '-')} "
                          f"| {int(cfg.get('steps_done', ev['steps'].iloc[-1])):,} "
                          f"| {float(cfg.get('train_seconds', 0.0)) / 60:.0f} | {y.iloc[0]:.4f} | {y.iloc[-1]:.4f} "
