@@ -29,9 +29,11 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
+from auv_follow_env.dynamics import recompiled
 from controllers._ou0 import (
     E_AGE,
     E_PSI,
@@ -67,7 +69,8 @@ def _wrap(a):
 @njit(cache=True)
 def _prop(x, T, turn, out, J):
     """The mean (5,) of state x after T seconds under CV (turn False) or CT, into ``out``, and
-    its Jacobian into J (5, 5)."""
+    its Jacobian into J (5, 5). Returns (cos, sin) of the new heading out[2] (the values the
+    arc needed anyway: bit for bit those of math.cos, math.sin of out[2])."""
     px, py, psi, u, r = x[0], x[1], x[2], x[3], x[4]
     s0, c0 = math.sin(psi), math.cos(psi)
     for a in range(NX):
@@ -93,6 +96,9 @@ def _prop(x, T, turn, out, J):
         J[1, 3] = dc / rs
         J[1, 4] = -u * dc / (rs * rs) + u * T * s1 / rs
         J[2, 4] = T
+        if rs != r:  # (a turn rate below 1e-5 rad/s: the arc used rs; the heading moved by r)
+            return math.cos(out[2]), math.sin(out[2])
+        return c1, s1
     else:
         out[0] = px + u * T * c0
         out[1] = py + u * T * s0
@@ -104,13 +110,14 @@ def _prop(x, T, turn, out, J):
         J[1, 2] = u * T * c0
         J[1, 3] = T * s0
         J[4, 4] = 0.0
+        return c0, s0
 
 
 @njit(cache=True)
 def _predict(x0, P0, T, turn, qc, m, P, tmp5, J, Jh, tmpm):
     """Mean m and covariance P of one model after T from (x0, P0): J P0 J^T plus the discrete
-    process noise by Simpson's rule (weights 1, 4, 1 at 0, T/2, T)."""
-    _prop(x0, T, turn, m, J)
+    process noise by Simpson's rule (weights 1, 4, 1 at 0, T/2, T). Returns (cos, sin) of m[2]."""
+    ce, se = _prop(x0, T, turn, m, J)
     for a in range(NX):
         for b in range(NX):
             acc = 0.0
@@ -124,7 +131,7 @@ def _predict(x0, P0, T, turn, qc, m, P, tmp5, J, Jh, tmpm):
                 acc += tmpm[a, k] * J[b, k]
             P[a, b] = acc
     if T <= 0.0:
-        return
+        return ce, se
     for node in range(3):
         f = 0.5 * node
         w = (1.0, 4.0, 1.0)[node] * T / 6.0
@@ -136,6 +143,7 @@ def _predict(x0, P0, T, turn, qc, m, P, tmp5, J, Jh, tmpm):
                 for k in range(NX):
                     acc += Jh[a, k] * qc[k] * Jh[b, k]
                 P[a, b] += w * acc
+    return ce, se
 
 
 @njit(cache=True)
@@ -171,26 +179,35 @@ def _solve_sym(S, n, Sinv):
 
 
 @njit(cache=True)
-def _interact_predict(m, P, mu, T, cfg, with_cov):
+def work():
+    """Scratch arrays of one filter call (:func:`_interact_predict`), allocated once per batch
+    chunk and reused env after env: qc (2, 5), c (2,), x0 (2, 5), P0 (2, 5, 5), mp (2, 5),
+    Pp (2, 5, 5), tmp5 (5,), J, Jh, tmpm (5, 5), d (5,), cs (2, 2) (cos, sin of each model's
+    predicted heading)."""
+    return (np.zeros((2, NX)), np.empty(2), np.empty((2, NX)), np.empty((2, NX, NX)), np.empty((2, NX)),
+            np.empty((2, NX, NX)), np.empty(NX), np.empty((NX, NX)), np.empty((NX, NX)), np.empty((NX, NX)),
+            np.empty(NX), np.empty((2, 2)))
+
+
+@njit(cache=True)
+def _interact_predict(m, P, mu, T, cfg, with_cov, w):
     """The IMM's interaction over T and both models' predictions: the predicted mode probabilities
-    c (2,), means mp (2, 5) and (if ``with_cov``) covariances Pp (2, 5, 5)."""
-    qc = np.zeros((2, NX))
+    c (2,), means mp (2, 5) and (if ``with_cov``) covariances Pp (2, 5, 5), in the scratch ``w``
+    (:func:`work`); the cos, sin of the predicted headings into w's cs."""
+    qc, c, x0, P0, mp, Pp, tmp5, J, Jh, tmpm, d, cs = w
+    for j in range(2):
+        for a in range(NX):
+            qc[j, a] = 0.0
     qc[0, 2] = cfg[C_QH]
     qc[0, 3] = cfg[C_QU]
     qc[1, 3] = cfg[C_QU]
     qc[1, 4] = cfg[C_QR]
-    c = np.empty(2)
-    x0 = np.empty((2, NX))
-    P0 = np.empty((2, NX, NX))
-    _mix(m, P, mu, T, cfg[C_TS], c, x0, P0, with_cov)
-    mp = np.empty((2, NX))
-    Pp = np.empty((2, NX, NX))
-    tmp5, J, Jh, tmpm = np.empty(NX), np.empty((NX, NX)), np.empty((NX, NX)), np.empty((NX, NX))
+    _mix(m, P, mu, T, cfg[C_TS], c, x0, P0, with_cov, d)
     for j in range(2):
         if with_cov:
-            _predict(x0[j], P0[j], T, j == 1, qc[j], mp[j], Pp[j], tmp5, J, Jh, tmpm)
+            cs[j, 0], cs[j, 1] = _predict(x0[j], P0[j], T, j == 1, qc[j], mp[j], Pp[j], tmp5, J, Jh, tmpm)
         else:
-            _prop(x0[j], T, j == 1, mp[j], J)
+            cs[j, 0], cs[j, 1] = _prop(x0[j], T, j == 1, mp[j], J)
     return c, mp, Pp
 
 
@@ -210,13 +227,12 @@ def imm_init(m, P, mu, z, var):
 
 
 @njit(cache=True)
-def _mix(m, P, mu, T, ts, c, x0, P0, with_cov):
+def _mix(m, P, mu, T, ts, c, x0, P0, with_cov, d):
     """The IMM's interaction over a span T: predicted mode probabilities c (2,), mixed initial
-    means x0 (2, 5) and covariances P0 (2, 5, 5) (if ``with_cov``)."""
+    means x0 (2, 5) and covariances P0 (2, 5, 5) (if ``with_cov``); d (5,) is scratch."""
     p = 0.5 * (1.0 - math.exp(-2.0 * T / ts))
     for j in range(2):
         c[j] = mu[0] * (1.0 - p if j == 0 else p) + mu[1] * (p if j == 0 else 1.0 - p)
-    d = np.empty(NX)
     for j in range(2):
         cj = max(c[j], 1e-300)
         w0 = mu[0] * (1.0 - p if j == 0 else p) / cj
@@ -250,7 +266,7 @@ def imm_update(m, P, mu, ng, T, z, var, cfg):
     """One fix z (5,) with variances var (5,), T seconds after the filter's last: interaction,
     prediction of both models, gating, update and the new mode probabilities (all in place).
     Returns True if the fix's position was gated out."""
-    c, mp, Pp = _interact_predict(m, P, mu, T, cfg, True)
+    c, mp, Pp = _interact_predict(m, P, mu, T, cfg, True, work())
     nu = np.empty((2, NX))
     for j in range(2):
         for a in range(NX):
@@ -323,19 +339,19 @@ def imm_update(m, P, mu, ng, T, z, var, cfg):
 
 
 @njit(cache=True)
-def imm_present(m, P, mu, T, cfg, out_x, with_cov, out_P):
+def imm_present(m, P, mu, T, cfg, out_x, with_cov, out_P, w):
     """The present state T seconds after the last fix: the models' predictions weighted by the
     predicted mode probabilities; the heading as the weighted circular mean. out_x (5,); the
-    mixture covariance into out_P (5, 5) if ``with_cov``."""
-    c, mp, Pp = _interact_predict(m, P, mu, T, cfg, with_cov)
+    mixture covariance into out_P (5, 5) if ``with_cov``; w: scratch (:func:`work`)."""
+    c, mp, Pp = _interact_predict(m, P, mu, T, cfg, with_cov, w)
     sx, sy = 0.0, 0.0
     for a in range(NX):
         out_x[a] = 0.0
     for j in range(2):
         for a in (0, 1, 3, 4):
             out_x[a] += c[j] * mp[j, a]
-        sx += c[j] * math.cos(mp[j, 2])
-        sy += c[j] * math.sin(mp[j, 2])
+        sx += c[j] * w[11][j, 0]  # cos, sin of mp[j, 2]
+        sy += c[j] * w[11][j, 1]
     # the heading: the weighted circular mean, kept on the branch of the most likely model
     ref = mp[0, 2] if c[0] >= c[1] else mp[1, 2]
     out_x[2] = ref + _wrap(math.atan2(sy, sx) - ref)
@@ -364,7 +380,86 @@ def _fix_variances(cfg, dx, dy, var):
     var[4] = cfg[C_SR] * cfg[C_SR]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
+def _imm_env(i, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out, z, var, xo, Po,
+             w):
+    """:func:`imm_step` for env i (z, var, xo (5,), Po (5, 5) and w (:func:`work`): scratch)."""
+    want_cov = cov_out.shape[0] > 0
+    dt = cfg[C_DT]
+    v1 = cfg[C_V1] != 0.0
+    pf, c, s, vx, vy = follower_motion(obs, i)
+    if reset[i]:
+        odom[i, 0] = 0.0
+        odom[i, 1] = 0.0
+        t_now[i] = 0.0
+        init[i] = False
+        ng[i, 0] = 0
+    else:
+        advance_odometry(odom, vel, t_now, i, vx, vy, dt)
+    vel[i, 0] = vx
+    vel[i, 1] = vy
+    psi_f[i] = pf
+    fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, cfg[C_TAU])
+    if fresh:
+        dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
+        _fix_variances(cfg, dx, dy, var)
+        if init[i]:
+            z[2] = m[i, 0, 2] + _wrap(z[2] - m[i, 0, 2])  # the heading on the filter's branch
+            imm_update(m[i], P[i], mu[i], ng[i], t_meas - t_fix[i], z, var, cfg)
+        else:
+            imm_init(m[i], P[i], mu[i], z, var)
+            init[i] = True
+            ng[i, 0] = 0
+        t_fix[i] = t_meas
+    if init[i]:
+        imm_present(m[i], P[i], mu[i], t_now[i] - t_fix[i], cfg, xo, want_cov, Po, w)
+        out[i, E_VALID] = 1.0
+        out[i, E_X] = xo[0]
+        out[i, E_Y] = xo[1]
+        out[i, E_PSI] = xo[2]
+        out[i, E_U] = xo[3]
+        out[i, E_R] = xo[4]
+        rx = xo[0] - odom[i, 0]
+        ry = xo[1] - odom[i, 1]
+        out[i, E_RX] = c * rx + s * ry
+        out[i, E_RY] = -s * rx + c * ry
+        out[i, E_RPSI] = _wrap(xo[2] - pf)
+        out[i, E_AGE] = t_now[i] - t_fix[i]
+        if want_cov:
+            for a in range(NX):
+                for b in range(NX):
+                    cov_out[i, a, b] = Po[a, b]
+    else:
+        for j in range(NE):
+            out[i, j] = 0.0
+        if want_cov:
+            for a in range(NX):
+                for b in range(NX):
+                    cov_out[i, a, b] = 0.0
+
+
+def _imm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out):
+    """:func:`imm_step` over ``chunks`` contiguous blocks of envs (a parallel loop in the threaded
+    build), each block with its own scratch."""
+    n = obs.shape[0]
+    for ch in prange(chunks):
+        z = np.empty(NX)
+        var = np.empty(NX)
+        xo = np.empty(NX)
+        Po = np.empty((NX, NX))
+        w = work()
+        for i in range(ch * n // chunks, (ch + 1) * n // chunks):
+            _imm_env(i, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out, z, var,
+                     xo, Po, w)
+
+
+#: the step, serial and on numba's threads (per env the same operations: the same bits)
+_imm_serial = njit(cache=True)(_imm_chunks)
+_imm_threads = recompiled(_imm_chunks, "_imm_chunks_par", cache=True, parallel=True)
+#: batches from this many envs are filtered on numba's threads (as the vector env steps them)
+THREADED_MIN_ENVS = 256
+
+
 def imm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out):
     """One control step of the IMM filter for every env (all arrays updated in place).
 
@@ -374,66 +469,15 @@ def imm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng
     out (N, NE): the present estimate (the OU0 kernel's columns E_*); cov_out (N, 5, 5) or
     (0, 5, 5): the present mixture covariance (or not wanted). The odometry frame and the timing
     of fixes are the OU0 kernel's: a fix not newer than the filter's is ignored (never observed
-    in the envs: the receiver keeps the newest packet).
+    in the envs: the receiver keeps the newest packet). From :data:`THREADED_MIN_ENVS` envs on,
+    the envs are split over numba's threads (the same result).
     """
     n = obs.shape[0]
-    want_cov = cov_out.shape[0] > 0
-    dt = cfg[C_DT]
-    v1 = cfg[C_V1] != 0.0
-    z = np.empty(NX)
-    var = np.empty(NX)
-    xo = np.empty(NX)
-    Po = np.empty((NX, NX))
-    for i in range(n):
-        pf, c, s, vx, vy = follower_motion(obs, i)
-        if reset[i]:
-            odom[i, 0] = 0.0
-            odom[i, 1] = 0.0
-            t_now[i] = 0.0
-            init[i] = False
-            ng[i, 0] = 0
-        else:
-            advance_odometry(odom, vel, t_now, i, vx, vy, dt)
-        vel[i, 0] = vx
-        vel[i, 1] = vy
-        psi_f[i] = pf
-        fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, cfg[C_TAU])
-        if fresh:
-            dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
-            _fix_variances(cfg, dx, dy, var)
-            if init[i]:
-                z[2] = m[i, 0, 2] + _wrap(z[2] - m[i, 0, 2])  # the heading on the filter's branch
-                imm_update(m[i], P[i], mu[i], ng[i], t_meas - t_fix[i], z, var, cfg)
-            else:
-                imm_init(m[i], P[i], mu[i], z, var)
-                init[i] = True
-                ng[i, 0] = 0
-            t_fix[i] = t_meas
-        if init[i]:
-            imm_present(m[i], P[i], mu[i], t_now[i] - t_fix[i], cfg, xo, want_cov, Po)
-            out[i, E_VALID] = 1.0
-            out[i, E_X] = xo[0]
-            out[i, E_Y] = xo[1]
-            out[i, E_PSI] = xo[2]
-            out[i, E_U] = xo[3]
-            out[i, E_R] = xo[4]
-            rx = xo[0] - odom[i, 0]
-            ry = xo[1] - odom[i, 1]
-            out[i, E_RX] = c * rx + s * ry
-            out[i, E_RY] = -s * rx + c * ry
-            out[i, E_RPSI] = _wrap(xo[2] - pf)
-            out[i, E_AGE] = t_now[i] - t_fix[i]
-            if want_cov:
-                for a in range(NX):
-                    for b in range(NX):
-                        cov_out[i, a, b] = Po[a, b]
-        else:
-            for j in range(NE):
-                out[i, j] = 0.0
-            if want_cov:
-                for a in range(NX):
-                    for b in range(NX):
-                        cov_out[i, a, b] = 0.0
+    threads = numba.get_num_threads() if n >= THREADED_MIN_ENVS else 1
+    if threads > 1:
+        _imm_threads(threads, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out)
+    else:
+        _imm_serial(1, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out)
 
 
 @njit(cache=True)
@@ -458,6 +502,7 @@ def imm_filter_fixes(t_meas, z, var, cfg, t_query):
     mus = np.empty((F, 2))
     Po = np.empty((NX, NX))
     xo = np.empty(NX)
+    w = work()
     nbuf = 0
     for f in range(F):
         pos = nbuf
@@ -488,7 +533,7 @@ def imm_filter_fixes(t_meas, z, var, cfg, t_query):
         m[:, :] = snap_m[nbuf - 1]
         P[:, :, :] = snap_P[nbuf - 1]
         mu[:] = snap_mu[nbuf - 1]
-        imm_present(m, P, mu, t_query[f] - t_meas[last], cfg, xo, False, Po)
+        imm_present(m, P, mu, t_query[f] - t_meas[last], cfg, xo, False, Po, w)
         out[f] = xo
         mus[f] = mu
     return out, mus
@@ -502,11 +547,12 @@ def imm_trajectory(m, P, mu, init, T, cfg):
     out = np.zeros((n, K, NX))
     xo = np.empty(NX)
     Po = np.empty((NX, NX))
+    w = work()
     for i in range(n):
         if not init[i]:
             continue
         for k in range(K):
-            imm_present(m[i], P[i], mu[i], T[i, k], cfg, xo, False, Po)
+            imm_present(m[i], P[i], mu[i], T[i, k], cfg, xo, False, Po, w)
             for a in range(NX):
                 out[i, k, a] = xo[a]
     return out

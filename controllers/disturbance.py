@@ -33,8 +33,12 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
+from numba import njit, prange
 
+from auv_follow_env.dynamics import recompiled
+from auv_follow_env.layout import OBS_INDEX
 from auv_follow_env.params import VehicleParams
 
 __all__ = ["DisturbanceObserver"]
@@ -110,6 +114,29 @@ class DisturbanceObserver:
         return self.d_hat.copy()
 
     @property
+    def fusable(self) -> bool:
+        """Whether :meth:`correct` applies (no thruster model: the applied force is the clipped
+        command)."""
+        return not self.models_thrusters
+
+    def correct(self, obs: np.ndarray, reset_mask: np.ndarray, F: np.ndarray) -> None:
+        """:meth:`update` on a float64 observation batch (N, W) (its body velocity and current),
+        then ``F -= d_hat`` and :meth:`applied` (F), in one compiled pass: the same operations as
+        ``F = F - update(nu, current, reset_mask); applied(F)``. Needs :attr:`fusable`."""
+        if not self.fusable:
+            raise ValueError("correct() needs an observer without a thruster model (fusable is False); "
+                             "call update() and applied()")
+        n = obs.shape[0]
+        first = self.d_hat is None or self.d_hat.shape[0] != n
+        if first:
+            self.d_hat, self._nu, self._n, self._f = (np.zeros((n, 3)), np.empty((n, 3)), np.empty((n, 3)),
+                                                      np.zeros((n, 3)))
+        nom = self.nominal
+        model = np.array([nom.m, nom.I_z, nom.X_u, nom.Y_v, nom.N_r], dtype=np.float64)
+        pas = _correct_threads if n >= _THREADED_MIN_ENVS and numba.get_num_threads() > 1 else _correct_serial
+        pas(obs, reset_mask, first, model, self.dt, self.gain, self.limits, self.d_hat, self._nu, self._n, self._f, F)
+
+    @property
     def models_thrusters(self) -> bool:
         return self.alpha < 1.0 or bool(np.all(np.isfinite(self.rate_step)))
 
@@ -122,3 +149,45 @@ class DisturbanceObserver:
             return
         new = self._f + self.alpha * (c - self._f)
         self._f = np.clip(new, self._f - self.rate_step, self._f + self.rate_step)
+
+
+_U, _V, _R = OBS_INDEX["u"], OBS_INDEX["v"], OBS_INDEX["r"]
+_CU, _CV = OBS_INDEX["current_u"], OBS_INDEX["current_v"]
+_THREADED_MIN_ENVS = 256  #: as the controllers' compiled passes (controllers.hierarchical.THREADED_MIN_ENVS)
+
+
+@njit(cache=True, inline="always")
+def _clip(x, lim):
+    """np.clip(x, -lim, lim) (NaN stays NaN)."""
+    if x < -lim:
+        return -lim
+    if x > lim:
+        return lim
+    return x
+
+
+def _correct_all(a, reset, first, model, dt, gain, limits, d_hat, nu_prev, n_prev, f_prev, F):
+    """:meth:`DisturbanceObserver.correct` env by env (``first``: the observer's first call on
+    this batch, d_hat = 0)."""
+    m, i_z, x_u, y_v, n_r = model[0], model[1], model[2], model[3], model[4]
+    for i in prange(a.shape[0]):
+        u, v, r = a[i, _U], a[i, _V], a[i, _R]
+        n0 = -x_u * (u - a[i, _CU]) + m * v * r
+        n1 = -y_v * (v - a[i, _CV]) - m * u * r
+        n2 = -n_r * r
+        if not first:
+            for j, mj, nuj, nj in ((0, m, u, n0), (1, m, v, n1), (2, i_z, r, n2)):
+                d_meas = mj * (nuj - nu_prev[i, j]) / dt - f_prev[i, j] - 0.5 * (nj + n_prev[i, j])
+                d_hat[i, j] = _clip(d_hat[i, j] + gain * (d_meas - d_hat[i, j]), limits[j])
+            if reset[i]:
+                for j in range(3):
+                    d_hat[i, j] = 0.0
+        nu_prev[i, 0], nu_prev[i, 1], nu_prev[i, 2] = u, v, r
+        n_prev[i, 0], n_prev[i, 1], n_prev[i, 2] = n0, n1, n2
+        for j in range(3):
+            F[i, j] = F[i, j] - d_hat[i, j]
+            f_prev[i, j] = _clip(F[i, j], limits[j])
+
+
+_correct_serial = njit(cache=True)(_correct_all)
+_correct_threads = recompiled(_correct_all, "_correct_par", cache=True, parallel=True)

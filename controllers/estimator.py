@@ -721,7 +721,7 @@ class TargetEstimator:
         return obs, (None if self.model in ("OU0", "IMM", "LEADER_PF") else decode(obs)), mask
 
     def step(self, observation: np.ndarray, reset_mask: np.ndarray | None = None, *, commit: bool = True,
-             with_cov: bool = True) -> TargetEstimate:
+             with_cov: bool = True, copy: bool = True) -> TargetEstimate:
         """Take one control step's observations (N, 16 or 20) and return the present estimate.
 
         Args:
@@ -731,6 +731,8 @@ class TargetEstimator:
             commit: False computes the estimate without changing the filter (a peek, e.g.
                 for a controller's ``reference`` method).
             with_cov: also propagate the covariance to now (``cov`` is None otherwise).
+            copy: False lets a commit that adopts a peek return the peek's own arrays (for a
+                caller that only reads them; True: a private copy).
 
         A commit on the same observation bits, reset mask and ``with_cov`` as the peek just
         before it (no other commit in between) adopts the peek's filter state and returns a copy
@@ -757,7 +759,7 @@ class TargetEstimator:
         if (self.reuse_peek and pk is not None and pk.base is self._s and pk.with_cov == with_cov
                 and np.array_equal(pk.mask, mask) and np.array_equal(pk.obs.view(np.int64), obs.view(np.int64))):
             self._s = pk.state
-            return _copy_estimate(pk.estimate)
+            return _copy_estimate(pk.estimate) if copy else pk.estimate
         return self._run(self._s, obs, o, mask, with_cov)
 
     def _run(self, st, obs: np.ndarray, o: dict[str, np.ndarray], mask: np.ndarray, with_cov: bool) -> TargetEstimate:

@@ -212,6 +212,57 @@ def _sat(z):
     return z
 
 
+@njit(cache=True, inline="always")
+def _law_env(i, a, e_x, e_y, ci, si, negi, u_hat, v_hat, r_hat, held, pdx, pdy, gain, model, fa, fb, prev, d,
+             restart, F):
+    """:func:`outer_loop` (ci, si = cos, sin of psi_hat; negi = -psi_ref), zeroed if ``held``, the
+    filtered derivative (restarted if ``restart``) and :func:`inner_loop` for env i into F[i]."""
+    nkp, nkpsi, k_u, k_v, k_r = gain[0], gain[1], gain[2], gain[3], gain[4]
+    rho0, rho1, rho2, phi0, phi1, phi2 = gain[5], gain[6], gain[7], gain[8], gain[9], gain[10]
+    m, i_z, x_u, y_v, n_r = model[0], model[1], model[2], model[3], model[4]
+    e_psi = math.atan2(math.sin(negi), math.cos(negi))
+    fx = ci * u_hat - si * v_hat
+    fy = si * u_hat + ci * v_hat
+    ox = ci * pdx - si * pdy
+    oy = si * pdx + ci * pdy
+    vffx = fx - r_hat * oy
+    vffy = fy + r_hat * ox
+    u_d = nkp * e_x + vffx
+    v_d = nkp * e_y + vffy
+    r_d = nkpsi * e_psi + r_hat
+    if held:
+        u_d = 0.0
+        v_d = 0.0
+        r_d = 0.0
+    if restart:
+        prev[i, 0] = u_d
+        prev[i, 1] = v_d
+        prev[i, 2] = r_d
+        d[i, 0] = 0.0
+        d[i, 1] = 0.0
+        d[i, 2] = 0.0
+    ud_dot = fa * (u_d - prev[i, 0]) + fb * d[i, 0]
+    vd_dot = fa * (v_d - prev[i, 1]) + fb * d[i, 1]
+    rd_dot = fa * (r_d - prev[i, 2]) + fb * d[i, 2]
+    d[i, 0] = ud_dot
+    d[i, 1] = vd_dot
+    d[i, 2] = rd_dot
+    prev[i, 0] = u_d
+    prev[i, 1] = v_d
+    prev[i, 2] = r_d
+    u = a[i, _U]
+    v = a[i, _V]
+    r = a[i, _R]
+    e_u = u - u_d
+    e_v = v - v_d
+    e_r = r - r_d
+    u_r = u - a[i, _CU]
+    v_r = v - a[i, _CV]
+    F[i, 0] = m * ud_dot + x_u * u_r - m * v * r - k_u * e_u - rho0 * _sat(e_u / phi0)
+    F[i, 1] = m * vd_dot + y_v * v_r + m * u * r - k_v * e_v - rho1 * _sat(e_v / phi1)
+    F[i, 2] = i_z * rd_dot + n_r * r - k_r * e_r - rho2 * _sat(e_r / phi2)
+
+
 def _law_pass(a, ref, c, s, neg, hold_col, pdx, pdy, gain, model, fa, fb, prev, d, reset, reset_all, F):
     """:func:`outer_loop` (``c``, ``s`` = cos, sin of psi_hat; neg = -psi_ref, wrapped to
     (-pi, pi] here as ``wrap_to_pi`` does, eq. (24)),
@@ -220,56 +271,42 @@ def _law_pass(a, ref, c, s, neg, hold_col, pdx, pdy, gain, model, fa, fb, prev, 
 
     gain = (-K_p, -K_psi, K_u, K_v, K_r, rho_u, rho_v, rho_r, phi_u, phi_v, phi_r),
     model = (m, I_z, X_u, Y_v, N_r)."""
-    nkp, nkpsi, k_u, k_v, k_r = gain[0], gain[1], gain[2], gain[3], gain[4]
-    rho0, rho1, rho2, phi0, phi1, phi2 = gain[5], gain[6], gain[7], gain[8], gain[9], gain[10]
-    m, i_z, x_u, y_v, n_r = model[0], model[1], model[2], model[3], model[4]
     for i in prange(a.shape[0]):
-        e_psi = math.atan2(math.sin(neg[i]), math.cos(neg[i]))
-        u_hat = a[i, _TU]
-        v_hat = a[i, _TV]
-        r_hat = a[i, _TR]
-        e_x = -ref[i, 0]
-        e_y = -ref[i, 1]
-        fx = c[i] * u_hat - s[i] * v_hat
-        fy = s[i] * u_hat + c[i] * v_hat
-        ox = c[i] * pdx - s[i] * pdy
-        oy = s[i] * pdx + c[i] * pdy
-        vffx = fx - r_hat * oy
-        vffy = fy + r_hat * ox
-        u_d = nkp * e_x + vffx
-        v_d = nkp * e_y + vffy
-        r_d = nkpsi * e_psi + r_hat
-        if hold_col >= 0 and a[i, hold_col] < 0.5:
-            u_d = 0.0
-            v_d = 0.0
-            r_d = 0.0
-        if reset_all or reset[i]:
-            prev[i, 0] = u_d
-            prev[i, 1] = v_d
-            prev[i, 2] = r_d
-            d[i, 0] = 0.0
-            d[i, 1] = 0.0
-            d[i, 2] = 0.0
-        ud_dot = fa * (u_d - prev[i, 0]) + fb * d[i, 0]
-        vd_dot = fa * (v_d - prev[i, 1]) + fb * d[i, 1]
-        rd_dot = fa * (r_d - prev[i, 2]) + fb * d[i, 2]
-        d[i, 0] = ud_dot
-        d[i, 1] = vd_dot
-        d[i, 2] = rd_dot
-        prev[i, 0] = u_d
-        prev[i, 1] = v_d
-        prev[i, 2] = r_d
-        u = a[i, _U]
-        v = a[i, _V]
-        r = a[i, _R]
-        e_u = u - u_d
-        e_v = v - v_d
-        e_r = r - r_d
-        u_r = u - a[i, _CU]
-        v_r = v - a[i, _CV]
-        F[i, 0] = m * ud_dot + x_u * u_r - m * v * r - k_u * e_u - rho0 * _sat(e_u / phi0)
-        F[i, 1] = m * vd_dot + y_v * v_r + m * u * r - k_v * e_v - rho1 * _sat(e_v / phi1)
-        F[i, 2] = i_z * rd_dot + n_r * r - k_r * e_r - rho2 * _sat(e_r / phi2)
+        held = hold_col >= 0 and a[i, hold_col] < 0.5
+        _law_env(i, a, -ref[i, 0], -ref[i, 1], c[i], s[i], neg[i], a[i, _TU], a[i, _TV], a[i, _TR], held, pdx, pdy,
+                 gain, model, fa, fb, prev, d, reset_all or reset[i], F)
+
+
+@njit(cache=True, inline="always")
+def _estimate_reference(i, ex, ey, epsi, valid, pdx, pdy, psi_off):
+    """:func:`reference_point` of a target estimate's env i (relative pose ex, ey, epsi), zero
+    where not ``valid`` (hold position): (x_ref, y_ref, psi_ref, cos psi_hat, sin psi_hat)."""
+    ci = math.cos(epsi[i])
+    si = math.sin(epsi[i])
+    ox = ci * pdx - si * pdy
+    oy = si * pdx + ci * pdy
+    if not valid[i]:
+        return 0.0, 0.0, 0.0, ci, si
+    return ex[i] + ox, ey[i] + oy, epsi[i] + psi_off, ci, si
+
+
+def _estimate_reference_all(ex, ey, epsi, valid, pdx, pdy, psi_off, ref):
+    """:func:`_estimate_reference` of every env into ref (N, 3)."""
+    for i in prange(ex.shape[0]):
+        xr, yr, pr, _, _ = _estimate_reference(i, ex, ey, epsi, valid, pdx, pdy, psi_off)
+        ref[i, 0] = xr
+        ref[i, 1] = yr
+        ref[i, 2] = pr
+
+
+def _estimate_law_pass(a, ex, ey, epsi, eu, ev, er, valid, pdx, pdy, psi_off, gain, model, fa, fb, prev, d, reset,
+                       reset_all, F):
+    """The law on a target estimate (relative pose ex, ey, epsi and body velocity eu, ev, er;
+    hold position where not ``valid``): :func:`reference_point`, then as :func:`_law_pass`."""
+    for i in prange(a.shape[0]):
+        xr, yr, pr, ci, si = _estimate_reference(i, ex, ey, epsi, valid, pdx, pdy, psi_off)
+        _law_env(i, a, -xr, -yr, ci, si, -pr, eu[i], ev[i], er[i], not valid[i], pdx, pdy, gain, model, fa, fb,
+                 prev, d, reset_all or reset[i], F)
 
 
 #: the passes, serial and on numba's threads (per env the same arithmetic: the same bits)
@@ -277,15 +314,19 @@ _reference_serial = njit(cache=True)(_reference_all)
 _reference_threads = recompiled(_reference_all, "_reference_par", cache=True, parallel=True)
 _law_serial = njit(cache=True)(_law_pass)
 _law_threads = recompiled(_law_pass, "_law_par", cache=True, parallel=True)
+_est_reference_serial = njit(cache=True)(_estimate_reference_all)
+_est_reference_threads = recompiled(_estimate_reference_all, "_est_reference_par", cache=True, parallel=True)
+_est_law_serial = njit(cache=True)(_estimate_law_pass)
+_est_law_threads = recompiled(_estimate_law_pass, "_est_law_par", cache=True, parallel=True)
 #: batches from this many envs run the passes on numba's threads (as the vector env's steps)
 THREADED_MIN_ENVS = 256
 
 
 def _passes(n: int):
-    """(reference pass, law pass) for a batch of n envs."""
+    """(reference pass, law pass, estimate reference pass, estimate law pass) for a batch of n envs."""
     if n >= THREADED_MIN_ENVS and numba.get_num_threads() > 1:
-        return _reference_threads, _law_threads
-    return _reference_serial, _law_serial
+        return _reference_threads, _law_threads, _est_reference_threads, _est_law_threads
+    return _reference_serial, _law_serial, _est_reference_serial, _est_law_serial
 
 
 @njit(cache=True)
@@ -346,6 +387,34 @@ class HierarchicalController(ScriptedPolicy):
         return (self._fused and self.estimator is None and self.disturbance_observer is None and _fusable(obs)
                 and type(self)._generate is HierarchicalController._generate)
 
+    def _uses_fused_estimate(self, obs) -> bool:
+        """The compiled passes on the estimator's output (the estimator itself runs as always)."""
+        dob = self.disturbance_observer
+        return (self._fused and self.estimator is not None and _fusable(obs)
+                and type(self)._estimate is HierarchicalController._estimate
+                and (dob is None or dob.fusable))
+
+    def _estimate_forces(self, obs: np.ndarray, reset_mask: np.ndarray) -> np.ndarray:
+        """:meth:`forces` with an estimator, compiled: the same operations as the numpy
+        composition (``_fused = False``) on the estimator's present estimate."""
+        n = obs.shape[0]
+        est = self.estimator.step(obs, reset_mask, commit=True, with_cov=False, copy=False)  # (read only)
+        diff = self._diff
+        reset_all = diff.prev is None or diff.prev.shape != (n, 3)
+        if reset_all:
+            diff.prev, diff.d = np.empty((n, 3)), np.zeros((n, 3))
+        g, nom, p_d = self.gains, self.spec.nominal, self.spec.p_d
+        rho = g.rho if self.robust else (0.0, 0.0, 0.0)
+        gain = np.array([-g.K_p, -g.K_psi, g.K_u, g.K_v, g.K_r, *rho, *g.phi], dtype=np.float64)
+        model = np.array([nom.m, nom.I_z, nom.X_u, nom.Y_v, nom.N_r], dtype=np.float64)
+        F = np.empty((n, 3))
+        _passes(n)[3](obs, est.rel_x, est.rel_y, est.rel_psi, est.u, est.v, est.r, est.valid, float(p_d[0]),
+                      float(p_d[1]), float(self.spec.psi_d), gain, model, diff.a, diff.b, diff.prev, diff.d,
+                      reset_mask, reset_all, F)
+        if self.disturbance_observer is not None:
+            self.disturbance_observer.correct(obs, reset_mask, F)
+        return F
+
     def _fused_reference(self, a: np.ndarray):
         """(ref (N, 3), cos psi_hat, sin psi_hat, -psi_ref) of the batch ``a``: :meth:`_generate`
         compiled, each libm function called once per env."""
@@ -398,7 +467,15 @@ class HierarchicalController(ScriptedPolicy):
     def reference(self, observation) -> np.ndarray:
         obs = np.atleast_2d(observation)
         if self.estimator is not None:
-            _, ref, _ = self._estimate(np.asarray(obs, dtype=np.float64), None, commit=False)
+            a = np.asarray(obs, dtype=np.float64)
+            if self._uses_fused_estimate(a):
+                est = self.estimator.step(a, None, commit=False, with_cov=False)
+                ref = np.empty((a.shape[0], 3))
+                p_d = self.spec.p_d
+                _passes(a.shape[0])[2](est.rel_x, est.rel_y, est.rel_psi, est.valid, float(p_d[0]), float(p_d[1]),
+                                       float(self.spec.psi_d), ref)
+                return ref
+            _, ref, _ = self._estimate(a, None, commit=False)
             return np.stack(ref, axis=-1)
         a = np.asarray(obs, dtype=np.float64)
         if self._uses_fused(a):
@@ -411,11 +488,12 @@ class HierarchicalController(ScriptedPolicy):
         return np.stack(ref, axis=-1)
 
     def forces(self, obs: np.ndarray, reset_mask: np.ndarray) -> np.ndarray:
-        if self._uses_fused(obs):
+        plain, on_estimate = self._uses_fused(obs), self._uses_fused_estimate(obs)
+        if plain or on_estimate:
             n, prev = obs.shape[0], self._diff.prev
             mask_ok = isinstance(reset_mask, np.ndarray) and reset_mask.dtype == np.bool_ and reset_mask.shape == (n,)
             if mask_ok and (prev is None or prev.shape == (n, 3) or reset_mask.any()):
-                return self._fused_forces(obs, reset_mask)
+                return self._fused_forces(obs, reset_mask) if plain else self._estimate_forces(obs, reset_mask)
             # (another mask type, or a batch of another size without a reset: the numpy composition)
         o = decode(obs)
         if self.estimator is None:

@@ -216,3 +216,87 @@ def test_actions_pass_equals_the_numpy_clip():
     p.forces = lambda obs, mask: F  # type: ignore[method-assign]
     a, _ = p.predict(np.zeros((64, OBS_DIM)))
     assert _same(a, np.clip(F / p._limits, -1.0, 1.0).astype(np.float32))
+
+
+# --- the estimator controllers: the compiled law on the estimator's output ------------------
+def _leader_obs_stream(n: int, steps: int, seed: int):
+    """Observations of n Leader-Hard episodes driven by PROPOSED_IMM_DOB (float64, as predict sees
+    them), with a few episode restarts."""
+    import gymnasium as gym
+
+    import auv_follow_env  # noqa: F401
+
+    venv = gym.make_vec("AUVFollow-Leader-Hard-v1", num_envs=n, vectorization_mode="vector_entry_point",
+                        episode_s=10.0, steady_start_s=5.0)
+    spec = venv.unwrapped.task_spec if hasattr(venv, "unwrapped") else venv.task_spec
+    driver = make_controller("PROPOSED_IMM_DOB", spec)
+    obs, _ = venv.reset(seed=list(range(seed, seed + n)))
+    start = np.ones(n, dtype=bool)
+    out = []
+    for _ in range(steps):
+        o = np.asarray(obs, dtype=np.float64)
+        out.append((o, start.copy()))
+        a, _ = driver.predict(o, episode_start=start)
+        obs, _, term, trunc, _ = venv.step(a)
+        start = term | trunc
+    venv.close()
+    return spec, out
+
+
+@pytest.mark.parametrize("n", [6, THREADED_MIN_ENVS + 12])
+@pytest.mark.parametrize("name", ["PROPOSED_KF_DOB", "PROPOSED_IMM_DOB", "PROPOSED_PF_DOB"])
+def test_estimator_law_equals_the_numpy_composition(name, n):
+    """reference() and predict() of the estimator controllers: the compiled passes on the
+    estimate give the numpy composition's reference, forces, actions, derivative state and
+    disturbance estimate within the bound, along real episodes (fixes, held envs before the
+    first packet, restarts; serial and threaded batches). A restart mask is forced on a few envs
+    mid-run."""
+    spec, stream = _leader_obs_stream(n, 60 if name != "PROPOSED_PF_DOB" else 25, seed=40)
+    fused, numpy_ = make_controller(name, spec), make_controller(name, spec)
+    numpy_._fused = False
+    assert fused._uses_fused_estimate(stream[0][0]) and not numpy_._uses_fused_estimate(stream[0][0])
+    for k, (o, start) in enumerate(stream):
+        if k == 17:
+            start = start.copy()
+            start[::3] = True
+        assert _close(fused.reference(o), numpy_.reference(o), **FORCE_TOL), f"reference, step {k}"
+        a, _ = fused.predict(o, episode_start=start)
+        b, _ = numpy_.predict(o, episode_start=start)
+        assert _close(a, b, **ACTION_TOL), f"actions, step {k}"
+        assert _close(fused.last_forces, numpy_.last_forces, **FORCE_TOL), f"forces, step {k}"
+        assert _close(fused._diff.d, numpy_._diff.d, **FORCE_TOL)
+        dob_f, dob_n = fused.disturbance_observer, numpy_.disturbance_observer
+        assert _close(dob_f.d_hat, dob_n.d_hat, **FORCE_TOL) and _close(dob_f._f, dob_n._f, **FORCE_TOL)
+    # the hold before the first packet is exercised: some envs had no fix at the first steps
+    assert (stream[0][0][:, OBS_INDEX_V1["has_packet"]] < 0.5).any()
+
+
+def test_observer_correct_equals_update_then_applied():
+    """DisturbanceObserver.correct (compiled) = F - update(nu, current, mask), then applied(F):
+    the same arithmetic, so the same bits in one process; first call, restarts, a new batch size,
+    saturation and NaN included."""
+    from controllers.disturbance import DisturbanceObserver
+
+    rng = np.random.default_rng(5)
+    lim = (400.0, 300.0, 150.0)
+    a_obs = DisturbanceObserver(S4.nominal, 0.05, lim, 0.5)
+    b_obs = DisturbanceObserver(S4.nominal, 0.05, lim, 0.5)
+    for k in range(30):
+        n = 7 if k < 20 else THREADED_MIN_ENVS + 3
+        o = rng.normal(size=(n, OBS_DIM_V1)) * (50.0 if k == 9 else 1.0)
+        if k == 11:
+            o[2, OBS_INDEX["u"]] = np.nan
+        mask = rng.uniform(size=n) < 0.2
+        F = rng.normal(scale=500.0, size=(n, 3))
+        Fa = F.copy()
+        a_obs.correct(o, mask, Fa)
+        nu = o[:, [OBS_INDEX["u"], OBS_INDEX["v"], OBS_INDEX["r"]]]
+        cur = o[:, [OBS_INDEX["current_u"], OBS_INDEX["current_v"]]]
+        Fb = F - b_obs.update(nu, cur, mask)
+        b_obs.applied(Fb)
+        assert _same(Fa, Fb), f"forces, call {k}"
+        assert _same(a_obs.d_hat, b_obs.d_hat) and _same(a_obs._f, b_obs._f), f"state, call {k}"
+    with_lag = DisturbanceObserver(S4.nominal, 0.05, lim, 0.5, thruster_tc_s=0.2)
+    assert not with_lag.fusable
+    with pytest.raises(ValueError, match="thruster model"):
+        with_lag.correct(o, mask, F.copy())

@@ -238,3 +238,51 @@ def test_the_model_aware_controller_runs_on_leader_tiers_only_and_batches_do_not
         np.testing.assert_array_equal(a[1], b[0])
         start[:] = False
         obs, *_ = venv.step(a)
+
+
+def test_threaded_step_equals_the_serial_step_bit_for_bit(monkeypatch):
+    """From THREADED_MIN_ENVS envs on, imm_step splits the batch over numba's threads; every env
+    runs the same operations as in the serial loop, so estimates and filter states are the same
+    bits (one process), along real Leader-Hard episodes with fixes, gating and restarts."""
+    import gymnasium as gym
+
+    import auv_follow_env  # noqa: F401
+    from controllers.estimator import TargetEstimator
+
+    n = _imm.THREADED_MIN_ENVS + 5
+    venv = gym.make_vec("AUVFollow-Leader-Hard-v1", num_envs=n, vectorization_mode="vector_entry_point",
+                        episode_s=10.0, steady_start_s=5.0)
+    spec = venv.unwrapped.task_spec
+    from controllers import make_controller
+
+    driver = make_controller("PROPOSED_IMM_DOB", spec)
+    threaded, serial = TargetEstimator(spec, driver.estimator.config), TargetEstimator(spec, driver.estimator.config)
+    obs, _ = venv.reset(seed=list(range(700, 700 + n)))
+    start = np.ones(n, dtype=bool)
+    calls = {"threads": 0}
+    real = _imm._imm_threads
+
+    def counting(*args):
+        calls["threads"] += 1
+        return real(*args)
+
+    for k in range(80):
+        o = np.asarray(obs, dtype=np.float64)
+        monkeypatch.setattr(_imm, "_imm_threads", counting)
+        a = threaded.step(o, start, with_cov=k % 2 == 0)
+        monkeypatch.setattr(_imm, "THREADED_MIN_ENVS", 10**9)  # the serial loop
+        b = serial.step(o, start, with_cov=k % 2 == 0)
+        monkeypatch.setattr(_imm, "THREADED_MIN_ENVS", n - 5)
+        monkeypatch.setattr(_imm, "_imm_threads", real)
+        for f in ("rel_x", "rel_y", "rel_psi", "u", "r", "age", "valid"):
+            assert np.array_equal(getattr(a, f), getattr(b, f)), (f, k)
+        if k % 2 == 0:
+            assert np.array_equal(a.cov, b.cov)
+        act, _ = driver.predict(o, episode_start=start)
+        obs, _, term, trunc, _ = venv.step(act)
+        start = term | trunc
+    for f in ("m", "P", "mu", "ng", "t_fix", "odom"):
+        assert np.array_equal(getattr(threaded._s, f), getattr(serial._s, f)), f
+    import numba
+
+    assert calls["threads"] == (80 if numba.get_num_threads() > 1 else 0)

@@ -283,10 +283,12 @@ class LearnedEstimator(TargetEstimator):
         self._h, self._lpeek = None, None
 
     def step(self, observation: np.ndarray, reset_mask: np.ndarray | None = None, *, commit: bool = True,
-             with_cov: bool = True) -> TargetEstimate:
+             with_cov: bool = True, copy: bool = True) -> TargetEstimate:
+        """:meth:`TargetEstimator.step` plus the learned correction (the result is always a new
+        estimate, whatever ``copy``)."""
         torch = self._torch
         fresh = self._s is None
-        est = super().step(observation, reset_mask, commit=commit, with_cov=with_cov)
+        est = super().step(observation, reset_mask, commit=commit, with_cov=with_cov, copy=False)  # (copied below)
         obs = np.atleast_2d(np.asarray(observation, dtype=np.float64))
         n = obs.shape[0]
         mask = np.zeros(n, bool) if reset_mask is None else np.asarray(reset_mask, bool).reshape(n)
