@@ -66,7 +66,7 @@ def _wrap(a):
     return math.atan2(math.sin(a), math.cos(a))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _prop(x, T, turn, out, J):
     """The mean (5,) of state x after T seconds under CV (turn False) or CT, into ``out``, and
     its Jacobian into J (5, 5). Returns (cos, sin) of the new heading out[2] (the values the
@@ -189,7 +189,7 @@ def work():
             np.empty(NX), np.empty((2, 2)))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _interact_predict(m, P, mu, T, cfg, with_cov, w):
     """The IMM's interaction over T and both models' predictions: the predicted mode probabilities
     c (2,), means mp (2, 5) and (if ``with_cov``) covariances Pp (2, 5, 5), in the scratch ``w``
@@ -226,7 +226,7 @@ def imm_init(m, P, mu, z, var):
     mu[1] = 0.5
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _mix(m, P, mu, T, ts, c, x0, P0, with_cov, d):
     """The IMM's interaction over a span T: predicted mode probabilities c (2,), mixed initial
     means x0 (2, 5) and covariances P0 (2, 5, 5) (if ``with_cov``); d (5,) is scratch."""
@@ -338,7 +338,7 @@ def imm_update(m, P, mu, ng, T, z, var, cfg):
     return gated
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def imm_present(m, P, mu, T, cfg, out_x, with_cov, out_P, w):
     """The present state T seconds after the last fix: the models' predictions weighted by the
     predicted mode probabilities; the heading as the weighted circular mean. out_x (5,); the
