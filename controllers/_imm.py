@@ -233,6 +233,10 @@ def _mix(m, P, mu, T, ts, c, x0, P0, with_cov, d):
     p = 0.5 * (1.0 - math.exp(-2.0 * T / ts))
     for j in range(2):
         c[j] = mu[0] * (1.0 - p if j == 0 else p) + mu[1] * (p if j == 0 else 1.0 - p)
+    # the heading difference wrapped, once: m_0 - m_1 is exactly -(m_1 - m_0), and the wrap
+    # atan2(sin, cos) is odd (glibc's sin and atan2 are odd bit for bit; a libm that is not would
+    # move the other model's mixed heading by an ulp)
+    dpsi = _wrap(m[1, 2] - m[0, 2])
     for j in range(2):
         cj = max(c[j], 1e-300)
         w0 = mu[0] * (1.0 - p if j == 0 else p) / cj
@@ -240,7 +244,7 @@ def _mix(m, P, mu, T, ts, c, x0, P0, with_cov, d):
         # x0_j = m_j + sum_i w_ij (m_i - m_j), the heading difference wrapped
         for a in range(NX):
             d[a] = m[1 - j, a] - m[j, a]
-        d[2] = _wrap(d[2])
+        d[2] = dpsi if j == 0 else -dpsi
         wo = w1 if j == 0 else w0  # the weight of the other model
         for a in range(NX):
             x0[j, a] = m[j, a] + wo * d[a]

@@ -482,20 +482,42 @@ class _Peek:
     estimate: TargetEstimate
 
 
+def _copy_state(st, spare):
+    """A copy of the filter state ``st``: written into ``spare`` (a state the estimator no longer
+    uses) when it has the same kind and shapes, which spares the allocation (and, for the large
+    arrays, the fresh pages' faults) of every peek; else a new copy."""
+    if spare is None or type(spare) is not type(st) or spare is st:
+        return st.copy()
+    for f in fields(st):
+        dst, src = getattr(spare, f.name), getattr(st, f.name)
+        if dst.shape != src.shape or dst.dtype != src.dtype:
+            return st.copy()
+    for f in fields(st):
+        np.copyto(getattr(spare, f.name), getattr(st, f.name))
+    return spare
+
+
 def _copy_estimate(e: TargetEstimate) -> TargetEstimate:
     return TargetEstimate(**{f.name: (v.copy() if isinstance(v := getattr(e, f.name), np.ndarray) else v)
                              for f in fields(e)})
 
 
-def _kernel_estimate(out: np.ndarray, state: np.ndarray, cov: np.ndarray | None) -> TargetEstimate:
+def _kernel_estimate(out: np.ndarray, state: np.ndarray, cov: np.ndarray | None,
+                     zeroed: bool = False) -> TargetEstimate:
     """A :class:`TargetEstimate` from a numba filter's output rows (the OU0 kernel's columns E_*;
-    the IMM writes the same) and its present state (N, n); no sway (v = 0)."""
+    the IMM writes the same) and its present state (N, n) (``zeroed``: already 0 for envs
+    without a fix, and not the filter's own array); no sway (v = 0)."""
     k = _ou0
     valid = out[:, k.E_VALID] > 0.5
     return TargetEstimate(valid=valid, x=out[:, k.E_X], y=out[:, k.E_Y], psi=out[:, k.E_PSI], u=out[:, k.E_U],
                           v=np.zeros(out.shape[0]), r=out[:, k.E_R], rel_x=out[:, k.E_RX], rel_y=out[:, k.E_RY],
-                          rel_psi=out[:, k.E_RPSI], state=np.where(valid[:, None], state, 0.0), cov=cov,
-                          age=out[:, k.E_AGE])
+                          rel_psi=out[:, k.E_RPSI], state=state if zeroed else np.where(valid[:, None], state, 0.0),
+                          cov=cov, age=out[:, k.E_AGE])
+
+
+#: the IMM's present state (x, y, psi, u, r) among the kernel's output columns (a view: E_X .. E_R)
+_IMM_STATE_COLUMNS = slice(_ou0.E_X, _ou0.E_R + 1)
+assert [_ou0.E_X, _ou0.E_Y, _ou0.E_PSI, _ou0.E_U, _ou0.E_R] == list(range(_ou0.E_X, _ou0.E_R + 1))
 
 
 class TargetEstimator:
@@ -535,6 +557,9 @@ class TargetEstimator:
         self._kstep = (_ou0.step_constants(spec.dt, self.config.tau_u, self.config.tau_r)
                        if self.model == "OU0" else None)
         self._s: _FilterState | None = None
+        #: a state no longer in use (the one a commit replaced by its peek's), refilled by the next peek;
+        #: only for the numba filters, whose estimates never share the state's arrays
+        self._spare = None
         #: reuse a peek's result for the commit that follows it on bit-identical input (False: always
         #: recompute, e.g. to check that reuse changes nothing)
         self.reuse_peek = True
@@ -544,6 +569,7 @@ class TargetEstimator:
         """Forget all envs: the next :meth:`step` starts every env fresh."""
         self._s = None
         self._peek = None
+        self._spare = None
 
     # ------------------------------------------------------------------------------------
     def _kernel_config(self) -> np.ndarray:
@@ -575,9 +601,9 @@ class TargetEstimator:
         cov = np.empty((n if with_cov else 0, 5, 5))
         _imm.imm_step(obs, mask, self._cfg, st.t_now, st.odom, st.vel, st.psi_f, st.init, st.t_fix, st.m, st.P,
                       st.mu, st.ng, out, cov)
-        state = np.stack([out[:, _ou0.E_X], out[:, _ou0.E_Y], out[:, _ou0.E_PSI], out[:, _ou0.E_U],
-                          out[:, _ou0.E_R]], axis=-1)
-        return _kernel_estimate(out, state, cov if with_cov else None)
+        # (x, y, psi, u, r): the kernel's columns E_X .. E_R in this order, zero where no fix yet
+        state = out[:, _IMM_STATE_COLUMNS]
+        return _kernel_estimate(out, state, cov if with_cov else None, zeroed=True)
 
     def _run_pf(self, st: _PFState, obs: np.ndarray, mask: np.ndarray) -> TargetEstimate:
         n = obs.shape[0]
@@ -748,7 +774,8 @@ class TargetEstimator:
         if self.model in ("OU0", "IMM", "LEADER_PF"):
             obs = np.ascontiguousarray(obs, dtype=np.float64)
         if not commit:
-            st = self._s.copy()
+            st = _copy_state(self._s, self._spare) if self.model in ("OU0", "IMM", "LEADER_PF") else self._s.copy()
+            self._spare = None
             est = self._run(st, obs, o, mask, with_cov)
             self._peek = None
             if self.reuse_peek:
@@ -758,7 +785,7 @@ class TargetEstimator:
         pk, self._peek = self._peek, None
         if (self.reuse_peek and pk is not None and pk.base is self._s and pk.with_cov == with_cov
                 and np.array_equal(pk.mask, mask) and np.array_equal(pk.obs.view(np.int64), obs.view(np.int64))):
-            self._s = pk.state
+            self._spare, self._s = self._s, pk.state
             return _copy_estimate(pk.estimate) if copy else pk.estimate
         return self._run(self._s, obs, o, mask, with_cov)
 

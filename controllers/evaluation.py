@@ -135,18 +135,20 @@ def _checked_action(out: Any, shape: tuple[int, ...], name: str, env_id: str, se
                     step: int) -> Any:
     """The action of ``predict``'s ``(action, state)``, checked to have ``shape``, a real numeric
     dtype and finite values (returned as given: the env sees exactly what the policy returned)."""
-    where = f"policy {name!r} on {env_id}, {_seed_text(seeds)}, step {step + 1}"
+    def where() -> str:  # (built only for an error message: formatting a long seed list costs a step's time)
+        return f"policy {name!r} on {env_id}, {_seed_text(seeds)}, step {step + 1}"
+
     if not isinstance(out, tuple) or len(out) != 2:
-        raise PolicyError(f"{where}: predict returned {type(out).__name__}, expected a pair (action, state)")
+        raise PolicyError(f"{where()}: predict returned {type(out).__name__}, expected a pair (action, state)")
     action = out[0]
     try:
         a = np.asarray(action)
     except Exception as exc:  # noqa: BLE001 (ragged lists and odd objects)
-        raise PolicyError(f"{where}: its action is not an array ({type(exc).__name__})") from None
+        raise PolicyError(f"{where()}: its action is not an array ({type(exc).__name__})") from None
     if a.dtype.kind not in "biuf":
-        raise PolicyError(f"{where}: its action has dtype {a.dtype}, expected real numbers (float32 or float64)")
+        raise PolicyError(f"{where()}: its action has dtype {a.dtype}, expected real numbers (float32 or float64)")
     if a.shape != shape:
-        raise PolicyError(f"{where}: its action has shape {a.shape}, expected {shape} (F_u, F_v, F_r in [-1, 1] "
+        raise PolicyError(f"{where()}: its action has shape {a.shape}, expected {shape} (F_u, F_v, F_r in [-1, 1] "
                           f"{'per env of the batch' if len(shape) == 2 else 'for one observation'})")
     finite = np.isfinite(a)
     if not finite.all():

@@ -9,6 +9,7 @@ under test.
 from __future__ import annotations
 
 import math
+from dataclasses import fields
 
 import numpy as np
 import pytest
@@ -402,3 +403,34 @@ def test_a_commit_after_a_peek_at_the_same_input_is_bit_identical_to_computing_i
     not_reused = {k for k in range(45) if k % 5 == 3 or k % 9 == 4 or k == 40}
     assert len(not_reused) == 13
     assert calls["n"] == 45 + len(not_reused)
+
+
+@pytest.mark.parametrize("model", ["OU0", "IMM"])
+def test_peeks_that_refill_a_spare_state_change_no_estimate(model):
+    """The numba filters' peeks copy the state into the one a reused peek made obsolete (no new
+    arrays): along peek-commit patterns (a reused peek; a reused peek into the refilled spare; two
+    peeks, the first at other bits; no peek) every commit equals an estimator that never peeks,
+    bit for bit, and the refilled spare is adopted by commits."""
+    reuse = TargetEstimator(SPEC, EstimatorConfig(model=model))
+    plain = TargetEstimator(SPEC, EstimatorConfig(model=model))
+    adopted_spares = 0
+    for k in range(60):
+        obs = _noisy_v1_stream(k)
+        mask = np.array([k == 0, k in (0, 30)])
+        other = obs.copy()
+        other[1, 0] += 1e-3
+        spare = reuse._spare
+        if k % 4 == 2:
+            reuse.step(other, mask, commit=False, with_cov=False)  # into the spare, then dropped
+            spare = None
+        if k % 4 != 3:
+            reuse.step(obs, mask, commit=False, with_cov=False)
+        a = reuse.step(obs, mask, with_cov=False)
+        if spare is not None and reuse._s is spare:
+            adopted_spares += 1
+        b = plain.step(obs, mask, with_cov=False)
+        for name in ("valid", "x", "y", "psi", "u", "r", "rel_x", "rel_y", "rel_psi", "state", "age"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"{name} at k={k}")
+        for f in fields(plain._s):
+            np.testing.assert_array_equal(getattr(reuse._s, f.name), getattr(plain._s, f.name), err_msg=f.name)
+    assert adopted_spares >= 10
