@@ -26,8 +26,11 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
+
+from auv_follow_env.dynamics import recompiled
 
 # config vector (float64) indices
 C_DT, C_TAU, C_V1, C_TU, C_TR = 0, 1, 2, 3, 4
@@ -336,6 +339,158 @@ def fix_measurement(obs, i, odom, pf, c, s, z):
 
 
 @njit(cache=True)
+def _ou0_env(i, obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P, xp, Pp, stale, dlt, stats,
+             out, cov_out, want_cov, dt, tu, tr, v1, sm, a_sm, F, Fh, tmp, Kb, S, xm, xh, z, var, old):
+    """:func:`ou0_step` for env i (F .. old: scratch)."""
+    pf, c, s, vx, vy = follower_motion(obs, i)
+    if reset[i]:
+        odom[i, 0] = 0.0
+        odom[i, 1] = 0.0
+        t_now[i] = 0.0
+        init[i] = False
+        for j in range(3):
+            dlt[i, j] = 0.0
+        for j in range(NS):
+            stats[i, j] = 0.0
+    else:
+        advance_odometry(odom, vel, t_now, i, vx, vy, dt)
+        # the present advances one control step (and the smoothing offset decays)
+        if init[i]:
+            if want_cov and not stale[i]:
+                qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
+                _span(xp[i], Pp[i], dt, tu, tr, _GL4_X, _GL4_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, Pp[i], tmp)
+            else:
+                stale[i] = True
+            _step_mean(xp[i], kstep)
+            for j in range(3):
+                dlt[i, j] *= a_sm
+    vel[i, 0] = vx
+    vel[i, 1] = vy
+    psi_f[i] = pf
+    # a newer fix?
+    fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, cfg[C_TAU])
+    if fresh:
+        dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
+        sp = cfg[C_SPOS] + cfg[C_SPM] * math.sqrt(dx * dx + dy * dy)
+        var[0] = sp * sp
+        var[1] = sp * sp
+        var[2] = cfg[C_SPSI] * cfg[C_SPSI]
+        var[3] = cfg[C_SVEL] * cfg[C_SVEL]
+        var[4] = cfg[C_SR] * cfg[C_SR]
+        # adaptive statistics (Welford on u, second moment of r)
+        nn = stats[i, S_N] + 1.0
+        d = z[3] - stats[i, S_MU]
+        stats[i, S_MU] += d / nn
+        stats[i, S_M2] += d * (z[3] - stats[i, S_MU])
+        stats[i, S_R2] += z[4] * z[4]
+        stats[i, S_N] = nn
+        qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
+        had = init[i]
+        if had:
+            old[0] = xp[i, 0] + dlt[i, 0]
+            old[1] = xp[i, 1] + dlt[i, 1]
+            old[2] = xp[i, 2] + dlt[i, 2]
+            T = t_meas - t_fix[i]
+            _span(x[i], P[i], T, tu, tr, _GL16_X, _GL16_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, P[i], tmp)
+            for j in range(6):
+                x[i, j] = xm[j]
+            _update(x[i], P[i], z, var, Kb, S, tmp)
+        else:
+            for j in range(5):
+                x[i, j] = z[j]
+            x[i, 5] = z[3]
+            for a in range(6):
+                for b in range(6):
+                    P[i, a, b] = 0.0
+            for j in range(5):
+                P[i, j, j] = var[j]
+            P[i, 5, 5] = cfg[C_SUB0] * cfg[C_SUB0]
+            init[i] = True
+        t_fix[i] = t_meas
+        # the present from the new filter state
+        T = t_now[i] - t_meas
+        _propagate(x[i], T, tu, tr, _GL16_X, _GL16_W, xm, F)
+        if want_cov:
+            _propagate(x[i], 0.5 * T, tu, tr, _GL16_X, _GL16_W, xh, Fh)
+            _predict_cov(P[i], F, Fh, T, qu, qr, cfg[C_QUB], Pp[i], tmp)
+            stale[i] = False
+        else:
+            stale[i] = True
+        for j in range(6):
+            xp[i, j] = xm[j]
+        if had and sm > 0.0:  # keep the returned pose where it was: the jump decays from here
+            dlt[i, 0] = old[0] - xp[i, 0]
+            dlt[i, 1] = old[1] - xp[i, 1]
+            dlt[i, 2] = _wrap(old[2] - xp[i, 2])
+    # the returned estimate
+    if init[i]:
+        ex = xp[i, 0] + dlt[i, 0]
+        ey = xp[i, 1] + dlt[i, 1]
+        pt = xp[i, 2] + dlt[i, 2]
+        out[i, E_VALID] = 1.0
+        out[i, E_X] = ex
+        out[i, E_Y] = ey
+        out[i, E_PSI] = pt
+        out[i, E_U] = xp[i, 3]
+        out[i, E_R] = xp[i, 4]
+        rx = ex - odom[i, 0]
+        ry = ey - odom[i, 1]
+        out[i, E_RX] = c * rx + s * ry
+        out[i, E_RY] = -s * rx + c * ry
+        out[i, E_RPSI] = _wrap(pt - pf)
+        out[i, E_AGE] = t_now[i] - t_fix[i]
+        if want_cov and stale[i]:  # the present covariance from the filter at t_fix
+            T = t_now[i] - t_fix[i]
+            qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
+            _span(x[i], P[i], T, tu, tr, _GL16_X, _GL16_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, Pp[i], tmp)
+            stale[i] = False
+        if want_cov:
+            for a in range(6):
+                for b in range(6):
+                    cov_out[i, a, b] = Pp[i, a, b]
+    else:
+        for j in range(NE):
+            out[i, j] = 0.0
+        if want_cov:
+            for a in range(6):
+                for b in range(6):
+                    cov_out[i, a, b] = 0.0
+
+
+def _ou0_chunks(chunks, obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P, xp, Pp, stale, dlt,
+                stats, out, cov_out):
+    """:func:`ou0_step` over ``chunks`` contiguous blocks of envs (a parallel loop in the threaded
+    build), each block with its own scratch."""
+    n = obs.shape[0]
+    want_cov = cov_out.shape[0] > 0
+    dt = cfg[C_DT]
+    tu, tr = cfg[C_TU], cfg[C_TR]
+    v1 = cfg[C_V1] != 0.0
+    sm = cfg[C_SMOOTH]
+    a_sm = math.exp(-dt / sm) if sm > 0.0 else 0.0
+    for ch in prange(chunks):
+        F = np.empty((6, 6))
+        Fh = np.empty((6, 6))
+        tmp = np.empty((6, 6))
+        Kb = np.empty((6, 5))
+        S = np.empty((5, 5))
+        xm = np.empty(6)
+        xh = np.empty(6)
+        z = np.empty(5)
+        var = np.empty(5)
+        old = np.empty(3)
+        for i in range(ch * n // chunks, (ch + 1) * n // chunks):
+            _ou0_env(i, obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P, xp, Pp, stale, dlt,
+                     stats, out, cov_out, want_cov, dt, tu, tr, v1, sm, a_sm, F, Fh, tmp, Kb, S, xm, xh, z, var, old)
+
+
+#: the step, serial and on numba's threads (per env the same operations: the same bits)
+_ou0_serial = njit(cache=True)(_ou0_chunks)
+_ou0_threads = recompiled(_ou0_chunks, "_ou0_chunks_par", cache=True, parallel=True)
+#: batches from this many envs are filtered on numba's threads (as the vector env steps them)
+THREADED_MIN_ENVS = 256
+
+
 def ou0_step(obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P, xp, Pp, stale, dlt, stats, out,
              cov_out):
     """One control step of the OU0 filter for every env (all arrays updated in place).
@@ -348,135 +503,10 @@ def ou0_step(obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P,
     the filter when next wanted), dlt (N, 3) (the smoothing offset of the returned pose), stats (N, NS).
     out (N, NE): the returned estimate (columns E_*); cov_out (N, 6, 6): the present covariance
     (or shape (0, 6, 6): not wanted).
+    From :data:`THREADED_MIN_ENVS` envs on, the envs are split over numba's threads (the same
+    result).
     """
-    n = obs.shape[0]
-    want_cov = cov_out.shape[0] > 0
-    dt = cfg[C_DT]
-    tu, tr = cfg[C_TU], cfg[C_TR]
-    v1 = cfg[C_V1] != 0.0
-    sm = cfg[C_SMOOTH]
-    a_sm = math.exp(-dt / sm) if sm > 0.0 else 0.0
-    F = np.empty((6, 6))
-    Fh = np.empty((6, 6))
-    tmp = np.empty((6, 6))
-    Kb = np.empty((6, 5))
-    S = np.empty((5, 5))
-    xm = np.empty(6)
-    xh = np.empty(6)
-    z = np.empty(5)
-    var = np.empty(5)
-    old = np.empty(3)
-    for i in range(n):
-        pf, c, s, vx, vy = follower_motion(obs, i)
-        if reset[i]:
-            odom[i, 0] = 0.0
-            odom[i, 1] = 0.0
-            t_now[i] = 0.0
-            init[i] = False
-            for j in range(3):
-                dlt[i, j] = 0.0
-            for j in range(NS):
-                stats[i, j] = 0.0
-        else:
-            advance_odometry(odom, vel, t_now, i, vx, vy, dt)
-            # the present advances one control step (and the smoothing offset decays)
-            if init[i]:
-                if want_cov and not stale[i]:
-                    qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
-                    _span(xp[i], Pp[i], dt, tu, tr, _GL4_X, _GL4_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, Pp[i], tmp)
-                else:
-                    stale[i] = True
-                _step_mean(xp[i], kstep)
-                for j in range(3):
-                    dlt[i, j] *= a_sm
-        vel[i, 0] = vx
-        vel[i, 1] = vy
-        psi_f[i] = pf
-        # a newer fix?
-        fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, cfg[C_TAU])
-        if fresh:
-            dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
-            sp = cfg[C_SPOS] + cfg[C_SPM] * math.sqrt(dx * dx + dy * dy)
-            var[0] = sp * sp
-            var[1] = sp * sp
-            var[2] = cfg[C_SPSI] * cfg[C_SPSI]
-            var[3] = cfg[C_SVEL] * cfg[C_SVEL]
-            var[4] = cfg[C_SR] * cfg[C_SR]
-            # adaptive statistics (Welford on u, second moment of r)
-            nn = stats[i, S_N] + 1.0
-            d = z[3] - stats[i, S_MU]
-            stats[i, S_MU] += d / nn
-            stats[i, S_M2] += d * (z[3] - stats[i, S_MU])
-            stats[i, S_R2] += z[4] * z[4]
-            stats[i, S_N] = nn
-            qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
-            had = init[i]
-            if had:
-                old[0] = xp[i, 0] + dlt[i, 0]
-                old[1] = xp[i, 1] + dlt[i, 1]
-                old[2] = xp[i, 2] + dlt[i, 2]
-                T = t_meas - t_fix[i]
-                _span(x[i], P[i], T, tu, tr, _GL16_X, _GL16_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, P[i], tmp)
-                for j in range(6):
-                    x[i, j] = xm[j]
-                _update(x[i], P[i], z, var, Kb, S, tmp)
-            else:
-                for j in range(5):
-                    x[i, j] = z[j]
-                x[i, 5] = z[3]
-                for a in range(6):
-                    for b in range(6):
-                        P[i, a, b] = 0.0
-                for j in range(5):
-                    P[i, j, j] = var[j]
-                P[i, 5, 5] = cfg[C_SUB0] * cfg[C_SUB0]
-                init[i] = True
-            t_fix[i] = t_meas
-            # the present from the new filter state
-            T = t_now[i] - t_meas
-            _propagate(x[i], T, tu, tr, _GL16_X, _GL16_W, xm, F)
-            if want_cov:
-                _propagate(x[i], 0.5 * T, tu, tr, _GL16_X, _GL16_W, xh, Fh)
-                _predict_cov(P[i], F, Fh, T, qu, qr, cfg[C_QUB], Pp[i], tmp)
-                stale[i] = False
-            else:
-                stale[i] = True
-            for j in range(6):
-                xp[i, j] = xm[j]
-            if had and sm > 0.0:  # keep the returned pose where it was: the jump decays from here
-                dlt[i, 0] = old[0] - xp[i, 0]
-                dlt[i, 1] = old[1] - xp[i, 1]
-                dlt[i, 2] = _wrap(old[2] - xp[i, 2])
-        # the returned estimate
-        if init[i]:
-            ex = xp[i, 0] + dlt[i, 0]
-            ey = xp[i, 1] + dlt[i, 1]
-            pt = xp[i, 2] + dlt[i, 2]
-            out[i, E_VALID] = 1.0
-            out[i, E_X] = ex
-            out[i, E_Y] = ey
-            out[i, E_PSI] = pt
-            out[i, E_U] = xp[i, 3]
-            out[i, E_R] = xp[i, 4]
-            rx = ex - odom[i, 0]
-            ry = ey - odom[i, 1]
-            out[i, E_RX] = c * rx + s * ry
-            out[i, E_RY] = -s * rx + c * ry
-            out[i, E_RPSI] = _wrap(pt - pf)
-            out[i, E_AGE] = t_now[i] - t_fix[i]
-            if want_cov and stale[i]:  # the present covariance from the filter at t_fix
-                T = t_now[i] - t_fix[i]
-                qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
-                _span(x[i], P[i], T, tu, tr, _GL16_X, _GL16_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, Pp[i], tmp)
-                stale[i] = False
-            if want_cov:
-                for a in range(6):
-                    for b in range(6):
-                        cov_out[i, a, b] = Pp[i, a, b]
-        else:
-            for j in range(NE):
-                out[i, j] = 0.0
-            if want_cov:
-                for a in range(6):
-                    for b in range(6):
-                        cov_out[i, a, b] = 0.0
+    threads = numba.get_num_threads() if obs.shape[0] >= THREADED_MIN_ENVS else 1
+    step = _ou0_threads if threads > 1 else _ou0_serial
+    step(threads, obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P, xp, Pp, stale, dlt, stats, out,
+         cov_out)

@@ -213,3 +213,54 @@ def test_observer_with_thruster_model_sees_the_lagged_force():
             got = dob.update(nu, cur, np.array([False]))[0]
             d_hat = np.clip(d_hat + g * (meas - d_hat), -np.array(lim), np.array(lim))
             np.testing.assert_allclose(got, d_hat, rtol=1e-12, atol=1e-12)
+
+
+def test_threaded_ou0_step_equals_the_serial_step_bit_for_bit(monkeypatch):
+    """From THREADED_MIN_ENVS envs on, ou0_step splits the batch over numba's threads; every env
+    runs the same operations as in the serial loop: the same estimates, covariances and filter
+    states, bit for bit (one process), along real Hard-v1 episodes with restarts."""
+    import gymnasium as gym
+
+    import auv_follow_env  # noqa: F401
+    from controllers import _ou0, make_controller
+    from controllers.estimator import TargetEstimator
+
+    n = _ou0.THREADED_MIN_ENVS + 7
+    venv = gym.make_vec("AUVFollow-Hard-v1", num_envs=n, vectorization_mode="vector_entry_point",
+                        episode_s=8.0, steady_start_s=4.0)
+    spec = venv.unwrapped.task_spec
+    driver = make_controller("PROPOSED_KF_DOB", spec)
+    threaded, serial = TargetEstimator(spec), TargetEstimator(spec)
+    assert threaded.model == "OU0"
+    obs, _ = venv.reset(seed=list(range(300, 300 + n)))
+    start = np.ones(n, dtype=bool)
+    calls = {"threads": 0}
+    real = _ou0._ou0_threads
+    restarts = 0
+
+    def counting(*args):
+        calls["threads"] += 1
+        return real(*args)
+
+    for k in range(200):
+        o = np.asarray(obs, dtype=np.float64)
+        monkeypatch.setattr(_ou0, "_ou0_threads", counting)
+        a = threaded.step(o, start, with_cov=k % 3 != 0)
+        monkeypatch.setattr(_ou0, "THREADED_MIN_ENVS", 10**9)  # the serial loop
+        b = serial.step(o, start, with_cov=k % 3 != 0)
+        monkeypatch.setattr(_ou0, "THREADED_MIN_ENVS", n - 7)
+        monkeypatch.setattr(_ou0, "_ou0_threads", real)
+        for f in ("valid", "rel_x", "rel_y", "rel_psi", "u", "r", "age", "state"):
+            assert np.array_equal(getattr(a, f), getattr(b, f)), (f, k)
+        if k % 3 != 0:
+            assert np.array_equal(a.cov, b.cov)
+        act, _ = driver.predict(o, episode_start=start)
+        obs, _, term, trunc, _ = venv.step(act)
+        start = term | trunc
+        restarts += int(start.sum())
+    assert restarts >= n  # (8 s episodes: 160 steps, so every env restarted within the 200)
+    for f in ("x", "P", "xp", "t_fix", "odom", "stats"):
+        assert np.array_equal(getattr(threaded._s, f), getattr(serial._s, f)), f
+    import numba
+
+    assert calls["threads"] == (200 if numba.get_num_threads() > 1 else 0)
