@@ -394,19 +394,26 @@ class HierarchicalController(ScriptedPolicy):
                 and type(self)._estimate is HierarchicalController._estimate
                 and (dob is None or dob.fusable))
 
+    def _law_constants(self, n: int) -> tuple[np.ndarray, np.ndarray, bool]:
+        """The compiled law's gain and model vectors (see :func:`_law_pass`), and whether the
+        filtered derivative restarts everywhere (its state made ready for n envs)."""
+        diff = self._diff
+        reset_all = diff.prev is None or diff.prev.shape != (n, 3)
+        if reset_all:
+            diff.prev, diff.d = np.empty((n, 3)), np.zeros((n, 3))
+        g, nom = self.gains, self.spec.nominal
+        rho = g.rho if self.robust else (0.0, 0.0, 0.0)
+        gain = np.array([-g.K_p, -g.K_psi, g.K_u, g.K_v, g.K_r, *rho, *g.phi], dtype=np.float64)
+        model = np.array([nom.m, nom.I_z, nom.X_u, nom.Y_v, nom.N_r], dtype=np.float64)
+        return gain, model, reset_all
+
     def _estimate_forces(self, obs: np.ndarray, reset_mask: np.ndarray) -> np.ndarray:
         """:meth:`forces` with an estimator, compiled: the same operations as the numpy
         composition (``_fused = False``) on the estimator's present estimate."""
         n = obs.shape[0]
         est = self.estimator.step(obs, reset_mask, commit=True, with_cov=False, copy=False)  # (read only)
-        diff = self._diff
-        reset_all = diff.prev is None or diff.prev.shape != (n, 3)
-        if reset_all:
-            diff.prev, diff.d = np.empty((n, 3)), np.zeros((n, 3))
-        g, nom, p_d = self.gains, self.spec.nominal, self.spec.p_d
-        rho = g.rho if self.robust else (0.0, 0.0, 0.0)
-        gain = np.array([-g.K_p, -g.K_psi, g.K_u, g.K_v, g.K_r, *rho, *g.phi], dtype=np.float64)
-        model = np.array([nom.m, nom.I_z, nom.X_u, nom.Y_v, nom.N_r], dtype=np.float64)
+        diff, p_d = self._diff, self.spec.p_d
+        gain, model, reset_all = self._law_constants(n)
         F = np.empty((n, 3))
         _passes(n)[3](obs, est.rel_x, est.rel_y, est.rel_psi, est.u, est.v, est.r, est.valid, float(p_d[0]),
                       float(p_d[1]), float(self.spec.psi_d), gain, model, diff.a, diff.b, diff.prev, diff.d,
@@ -438,14 +445,8 @@ class HierarchicalController(ScriptedPolicy):
         n = obs.shape[0]
         cached = self._cached_reference(obs)
         ref, c, s, neg = cached if cached is not None else self._fused_reference(obs)
-        diff = self._diff
-        reset_all = diff.prev is None or diff.prev.shape != (n, 3)
-        if reset_all:
-            diff.prev, diff.d = np.empty((n, 3)), np.zeros((n, 3))
-        g, nom, p_d = self.gains, self.spec.nominal, self.spec.p_d
-        rho = g.rho if self.robust else (0.0, 0.0, 0.0)
-        gain = np.array([-g.K_p, -g.K_psi, g.K_u, g.K_v, g.K_r, *rho, *g.phi], dtype=np.float64)
-        model = np.array([nom.m, nom.I_z, nom.X_u, nom.Y_v, nom.N_r], dtype=np.float64)
+        diff, p_d = self._diff, self.spec.p_d
+        gain, model, reset_all = self._law_constants(n)
         F = np.empty((n, 3))
         _passes(n)[1](obs, ref, c, s, neg, _HAS if obs.shape[1] == OBS_DIM_V1 else -1, float(p_d[0]), float(p_d[1]),
                       gain, model, diff.a, diff.b, diff.prev, diff.d, reset_mask, reset_all, F)
