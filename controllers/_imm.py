@@ -442,9 +442,30 @@ def _imm_env(i, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu,
                     cov_out[i, a, b] = 0.0
 
 
-def _imm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out):
+@njit(cache=True, inline="always")
+def _copy_row(i, src, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng):
+    """Env i's row of every state array from the state ``src`` (the same arrays, as a tuple)."""
+    s_t_now, s_odom, s_vel, s_psi_f, s_init, s_t_fix, s_m, s_P, s_mu, s_ng = src
+    t_now[i] = s_t_now[i]
+    psi_f[i] = s_psi_f[i]
+    init[i] = s_init[i]
+    t_fix[i] = s_t_fix[i]
+    ng[i, 0] = s_ng[i, 0]
+    for a in range(2):
+        odom[i, a] = s_odom[i, a]
+        vel[i, a] = s_vel[i, a]
+        mu[i, a] = s_mu[i, a]
+        for b in range(NX):
+            m[i, a, b] = s_m[i, a, b]
+            for c in range(NX):
+                P[i, a, b, c] = s_P[i, a, b, c]
+
+
+def _imm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out, src,
+                copy_rows):
     """:func:`imm_step` over ``chunks`` contiguous blocks of envs (a parallel loop in the threaded
-    build), each block with its own scratch."""
+    build), each block with its own scratch; with ``copy_rows`` each env's state is first copied
+    from ``src``."""
     n = obs.shape[0]
     for ch in prange(chunks):
         z = np.empty(NX)
@@ -453,6 +474,8 @@ def _imm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m
         Po = np.empty((NX, NX))
         w = work()
         for i in range(ch * n // chunks, (ch + 1) * n // chunks):
+            if copy_rows:
+                _copy_row(i, src, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng)
             _imm_env(i, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out, z, var,
                      xo, Po, w)
 
@@ -464,7 +487,7 @@ _imm_threads = recompiled(_imm_chunks, "_imm_chunks_par", cache=True, parallel=T
 THREADED_MIN_ENVS = 256
 
 
-def imm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out):
+def imm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out, src=None):
     """One control step of the IMM filter for every env (all arrays updated in place).
 
     obs (N, W) observations (W = 16: v0, a fix ``tau`` old every step; 20: v1); reset (N,) bool;
@@ -474,14 +497,15 @@ def imm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng
     (0, 5, 5): the present mixture covariance (or not wanted). The odometry frame and the timing
     of fixes are the OU0 kernel's: a fix not newer than the filter's is ignored (never observed
     in the envs: the receiver keeps the newest packet). From :data:`THREADED_MIN_ENVS` envs on,
-    the envs are split over numba's threads (the same result).
+    the envs are split over numba's threads (the same result). ``src``: None (the state arrays are
+    updated in place) or a tuple of state arrays of the same shapes (t_now .. ng) to start from
+    (the state arrays given are then overwritten: a peek's copy made inside the kernel).
     """
     n = obs.shape[0]
     threads = numba.get_num_threads() if n >= THREADED_MIN_ENVS else 1
-    if threads > 1:
-        _imm_threads(threads, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out)
-    else:
-        _imm_serial(1, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out)
+    dst = (t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng)
+    step = _imm_threads if threads > 1 else _imm_serial
+    step(threads, obs, reset, cfg, *dst, out, cov_out, dst if src is None else tuple(src), src is not None)
 
 
 @njit(cache=True)

@@ -138,7 +138,7 @@ class DisturbanceObserver:
 
     @property
     def models_thrusters(self) -> bool:
-        return self.alpha < 1.0 or bool(np.all(np.isfinite(self.rate_step)))
+        return self.alpha < 1.0 or all(map(math.isfinite, self.rate_step.tolist()))  # (per step: no numpy temporaries)
 
     def applied(self, command: np.ndarray) -> None:
         """Record this step's command (N, 3) [N, N, N m]: the observer keeps it clipped to the limits

@@ -497,6 +497,20 @@ def _copy_state(st, spare):
     return spare
 
 
+def _blank_like(st, spare):
+    """``spare`` if it is a state of the same kind and shapes as ``st`` (to be overwritten), else a
+    new uninitialised one."""
+    if spare is not None and type(spare) is type(st) and spare is not st and all(
+            getattr(spare, f.name).shape == getattr(st, f.name).shape for f in fields(st)):
+        return spare
+    return type(st)(*(np.empty_like(getattr(st, f.name)) for f in fields(st)))
+
+
+def _state_arrays(st) -> tuple[np.ndarray, ...]:
+    """The state's arrays in field order."""
+    return tuple(getattr(st, f.name) for f in fields(st))
+
+
 def _copy_estimate(e: TargetEstimate) -> TargetEstimate:
     return TargetEstimate(**{f.name: (v.copy() if isinstance(v := getattr(e, f.name), np.ndarray) else v)
                              for f in fields(e)})
@@ -595,12 +609,15 @@ class TargetEstimator:
         cfg[k.C_TS], cfg[k.C_GATE] = c.imm_tau_s, float(c.imm_gate)
         return cfg
 
-    def _run_imm(self, st: _IMMState, obs: np.ndarray, mask: np.ndarray, with_cov: bool) -> TargetEstimate:
+    def _run_imm(self, st: _IMMState, obs: np.ndarray, mask: np.ndarray, with_cov: bool,
+                 src: _IMMState | None = None) -> TargetEstimate:
+        """The IMM kernel on ``st`` (in place; from the state ``src`` instead if given: st is
+        then overwritten, the copy made env by env inside the kernel)."""
         n = obs.shape[0]
         out = np.empty((n, _ou0.NE))
         cov = np.empty((n if with_cov else 0, 5, 5))
         _imm.imm_step(obs, mask, self._cfg, st.t_now, st.odom, st.vel, st.psi_f, st.init, st.t_fix, st.m, st.P,
-                      st.mu, st.ng, out, cov)
+                      st.mu, st.ng, out, cov, None if src is None else _state_arrays(src))
         # (x, y, psi, u, r): the kernel's columns E_X .. E_R in this order, zero where no fix yet
         state = out[:, _IMM_STATE_COLUMNS]
         return _kernel_estimate(out, state, cov if with_cov else None, zeroed=True)
@@ -774,9 +791,14 @@ class TargetEstimator:
         if self.model in ("OU0", "IMM", "LEADER_PF"):
             obs = np.ascontiguousarray(obs, dtype=np.float64)
         if not commit:
-            st = _copy_state(self._s, self._spare) if self.model in ("OU0", "IMM", "LEADER_PF") else self._s.copy()
-            self._spare = None
-            est = self._run(st, obs, o, mask, with_cov)
+            if self.model == "IMM":  # the peek's copy of the state is made inside the kernel
+                st = _blank_like(self._s, self._spare)
+                self._spare = None
+                est = self._run_imm(st, obs, mask, with_cov, src=self._s)
+            else:
+                st = _copy_state(self._s, self._spare) if self.model in ("OU0", "LEADER_PF") else self._s.copy()
+                self._spare = None
+                est = self._run(st, obs, o, mask, with_cov)
             self._peek = None
             if self.reuse_peek:
                 key = obs.copy() if np.may_share_memory(obs, observation) else obs
