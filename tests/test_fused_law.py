@@ -243,8 +243,9 @@ def _leader_obs_stream(n: int, steps: int, seed: int):
     return spec, out
 
 
-@pytest.mark.parametrize("n", [6, THREADED_MIN_ENVS + 12])
-@pytest.mark.parametrize("name", ["PROPOSED_KF_DOB", "PROPOSED_IMM_DOB", "PROPOSED_PF_DOB"])
+@pytest.mark.parametrize(("name", "n"), [("PROPOSED_KF_DOB", 6), ("PROPOSED_KF_DOB", THREADED_MIN_ENVS + 12),
+                                         ("PROPOSED_IMM_DOB", 6), ("PROPOSED_IMM_DOB", THREADED_MIN_ENVS + 12),
+                                         ("PROPOSED_PF_DOB", 6)])  # (the passes do not depend on the filter)
 def test_estimator_law_equals_the_numpy_composition(name, n):
     """reference() and predict() of the estimator controllers: the compiled passes on the
     estimate give the numpy composition's reference, forces, actions, derivative state and
