@@ -80,7 +80,8 @@ OPTIONS = {"plain": [], "linear_skip": ["--hp", "policy_kwargs=dict(linear_skip=
            "recurrent": ["--hp", "policy_kwargs=dict(recurrent=True, gru_size=8)"],
            "privileged_critic": ["--hp", "policy_kwargs=dict(privileged_critic=True, linear_skip=True)"],
            "action_filter": ["--hp", "action_filter=0.5", "--hp", "policy_kwargs=dict(linear_skip=True)"],
-           "squash": ["--hp", "policy_kwargs=dict(squash=True, linear_skip=True)"]}
+           "squash": ["--hp", "policy_kwargs=dict(squash=True, linear_skip=True)"],
+           "yaw_from": ["--hp", "yaw_from='PROPOSED_KF_DOB'", "--hp", "policy_kwargs=dict(linear_skip=True)"]}
 
 
 @pytest.mark.parametrize("option", list(OPTIONS))
@@ -375,3 +376,39 @@ def test_yaw_rate_option_trains_and_is_recorded(tmp_path):
     _tiny_bppo(tmp_path, "--hp", "yaw_rate_coef=0.05")
     cfg = yaml.safe_load((tmp_path / "r" / "config.yaml").read_text())
     assert cfg["training"]["yaw_rate_coef"] == 0.05
+
+
+def test_yaw_from_a_classical_law_replaces_only_the_yaw_moment():
+    """yaw_from: the env gets the agent's surge and sway and the classical law's yaw moment (the
+    action that law alone would command on the same observations), its observer is told the
+    force applied; the option is recorded in the builder's config and refused with a residual."""
+    import gymnasium as gym
+
+    from agents.training.batched_obs import ObservationBuilder
+    from controllers import make_controller
+
+    env = gym.make_vec(EASY, num_envs=4, vectorization_mode="vector_entry_point")
+    spec = env.unwrapped.task_spec
+    b = ObservationBuilder(spec, observation="estimator", yaw_from="PROPOSED_KF_DOB")
+    law = make_controller("PROPOSED_KF_DOB", spec)
+    assert b.config["yaw_from"] == "PROPOSED_KF_DOB"
+    assert "yaw_from" not in ObservationBuilder(spec, observation="estimator").config
+    obs, _ = env.reset(seed=[21, 22, 23, 24])
+    start = np.ones(4, dtype=bool)
+    rng = np.random.default_rng(3)
+    for _ in range(30):
+        b.observe(obs, start)
+        want, _ = law.predict(np.asarray(obs, dtype=np.float64), episode_start=start)
+        agent = rng.uniform(-1.0, 1.0, (4, 3))
+        a = b.act(agent)
+        np.testing.assert_array_equal(a[:, :2], agent[:, :2])
+        np.testing.assert_array_equal(a[:, 2], want[:, 2].astype(np.float64))
+        np.testing.assert_array_equal(b.yaw_base.disturbance_observer._f, np.clip(a * b.limits, -b.limits, b.limits))
+        law.disturbance_observer.applied(a * b.limits)  # the law beside it is told the same force
+        obs, *_ = env.step(a)
+        start = np.zeros(4, dtype=bool)
+    env.close()
+    with pytest.raises(ValueError, match=r"yaw_from='PROPOSED_KF_DOB' is invalid with mode='residual'"):
+        ObservationBuilder(spec, mode="residual", controller="PROPOSED_KF_DOB", yaw_from="PROPOSED_KF_DOB")
+    with pytest.raises(ValueError, match=r"yaw_from='LQR' is invalid"):
+        ObservationBuilder(spec, yaw_from="LQR")

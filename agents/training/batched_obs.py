@@ -164,6 +164,10 @@ class ObservationBuilder:
             ``u_k = u_{k-1} + alpha (a_k - u_{k-1})`` (``u`` = 0 at an episode's start), and
             ``u_{k-1}`` is appended to the observation (3 fields) so the policy sees its own
             state. 1 (the default): no filter, nothing appended.
+        yaw_from: a controller (one of ``controllers.ALL_CONTROLLERS``) whose yaw moment replaces
+            the agent's (scratch only): the agent commands surge and sway, the classical law
+            keeps the heading; its disturbance observer is told the force applied. None (the
+            default): the agent commands all three.
 
     The memory of every part (base controller, estimators, observers, history) restarts
     for the envs where ``start`` is set, and for all on the first call or a change of N.
@@ -171,7 +175,8 @@ class ObservationBuilder:
 
     def __init__(self, spec: Any, *, mode: str = "scratch", controller: str | None = None, scale: float = 0.2,
                  include_base_action: bool = True, observation: str = "raw", history_len: int = 0,
-                 history_stride: int = 10, observer_feed: str = "applied", action_filter: float = 1.0) -> None:
+                 history_stride: int = 10, observer_feed: str = "applied", action_filter: float = 1.0,
+                 yaw_from: str | None = None) -> None:
         from agents.training.history import DelayedTargetHistory, _check
 
         _check_mode(mode)
@@ -196,6 +201,12 @@ class ObservationBuilder:
             raise ValueError(f"spec.obs_dim={spec.obs_dim!r} is not an AUVFollow layout width {sorted(LAYOUTS)}")
         self.limits = np.asarray(spec.force_limits, dtype=np.float64)
         self.base = make_controller(controller, spec) if mode == "residual" else None
+        if yaw_from is not None and (mode != "scratch" or yaw_from not in ALL_CONTROLLERS):
+            raise ValueError(f"yaw_from={yaw_from!r} is invalid with mode={mode!r}: must be None or, from scratch, "
+                             f"one of {list(ALL_CONTROLLERS)}")
+        self.yaw_from = yaw_from
+        self.yaw_base = make_controller(yaw_from, spec) if yaw_from is not None else None
+        self.yaw_action: np.ndarray | None = None  #: (N, 3) the yaw controller's action at the last observe
         base_est = getattr(self.base, "estimator", None)
         base_dob = getattr(self.base, "disturbance_observer", None)
         self.base_estimator: TargetEstimator | None = base_est if isinstance(base_est, TargetEstimator) else None
@@ -221,7 +232,8 @@ class ObservationBuilder:
                 "scale": self.scale, "include_base_action": self.include_base_action,
                 "observation": self.observation, "history_len": self.history_len,
                 "history_stride": self.history_stride, "observer_feed": self.observer_feed,
-                **({"action_filter": self.action_filter} if self.action_filter < 1.0 else {})}
+                **({"action_filter": self.action_filter} if self.action_filter < 1.0 else {}),
+                **({"yaw_from": self.yaw_from} if self.yaw_from is not None else {})}
 
     def reset(self) -> None:
         """Forget everything: the next :meth:`observe` starts every env afresh."""
@@ -245,12 +257,14 @@ class ObservationBuilder:
             start = np.asarray(start, dtype=bool).reshape(n)
         if self._n != n:
             start = np.ones(n, dtype=bool)
-            for part in (self.base, self.estimator, self.base_estimator):
+            for part in (self.base, self.estimator, self.base_estimator, self.yaw_base):
                 if part is not None:
                     part.reset()
             self._n = n
         obs64 = np.asarray(obs, dtype=np.float64)
         parts = [obs.astype(np.float32, copy=False)]
+        if self.yaw_base is not None:
+            self.yaw_action, _ = self.yaw_base.predict(obs64, episode_start=start)
         est = None
         if self.base is not None:
             if self.observation == "estimator" and self.base_estimator is not None:
@@ -299,7 +313,13 @@ class ObservationBuilder:
             force = np.clip(self.base_forces + self.scale * res * self.limits, -self.limits, self.limits)
         else:
             a = res
-            force = res * self.limits
+            if self.yaw_base is not None:  # the classical law's yaw moment, the agent's surge and sway
+                a = res.copy()
+                a[:, 2] = np.clip(self.yaw_action[:, 2].astype(np.float64), -1.0, 1.0)
+            force = a * self.limits
+        yaw_dob = getattr(self.yaw_base, "disturbance_observer", None)
+        if yaw_dob is not None:
+            yaw_dob.applied(force)
         if self.base_dob is not None and self.observer_feed == "applied":
             self.base_dob.applied(force)
         if self.dob is not None:

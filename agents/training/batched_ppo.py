@@ -146,7 +146,7 @@ class BatchedPPO:
                  obs_norm_window: int = 1_000_000, reward_norm_window: int = 1_000_000, teacher: str | None = None,
                  teacher_link: str = "perfect", distill_steps: int = 0, action_rate_coef: float = 0.0,
                  action_filter: float = 1.0, heading_coef: float = 0.0, bounds_loss_coef: float = 0.0,
-                 yaw_rate_coef: float = 0.0) -> None:
+                 yaw_rate_coef: float = 0.0, yaw_from: str | None = None) -> None:
         self.__dict__.update({k: v for k, v in locals().items() if k != "self"})
 
 
@@ -276,6 +276,13 @@ def check_bppo_hyperparams(hp: dict[str, Any], n_envs: int | None = None) -> Non
         check_action_filter(hp.get("action_filter", 1.0))
     except ValueError as exc:
         raise ValueError(f"hyperparameter {exc}") from None
+    yaw_from = hp.get("yaw_from")
+    if yaw_from is not None:
+        from controllers import ALL_CONTROLLERS
+
+        if not isinstance(yaw_from, str) or yaw_from not in ALL_CONTROLLERS:
+            raise ValueError(f"hyperparameter yaw_from={yaw_from!r} is invalid: must be null or one of "
+                             f"{list(ALL_CONTROLLERS)} (the controller whose yaw moment replaces the agent's)")
     if not isinstance(hp.get("random_phase", True), bool):
         raise ValueError(f"hyperparameter random_phase={hp.get('random_phase')!r} is invalid: must be true or false")
     _check_teacher(hp)
@@ -685,7 +692,8 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                             "heading_coef": float(hp["heading_coef"]),
                             "action_filter": float(hp["action_filter"]),
                             "bounds_loss_coef": float(hp["bounds_loss_coef"]),
-                            "yaw_rate_coef": float(hp["yaw_rate_coef"])}
+                            "yaw_rate_coef": float(hp["yaw_rate_coef"]),
+                            "yaw_from": hp.get("yaw_from")}
     start_steps = 0
     if cfg.resume_from is not None:
         data = _load_model_file(Path(cfg.resume_from))

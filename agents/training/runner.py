@@ -324,6 +324,11 @@ def _train_batched(cfg: TrainConfig, plan: _Plan, return_model: bool):
     builder = cfg.builder_kwargs()
     if float(plan.hp.get("action_filter", 1.0)) < 1.0:  # the low-pass action is part of what the agent observes
         builder["action_filter"] = float(plan.hp["action_filter"])
+    if plan.hp.get("yaw_from") is not None:  # the yaw moment from a classical law: part of the policy
+        if cfg.mode != "scratch":
+            raise ConfigError("hyperparams", f"hyperparameter yaw_from={plan.hp['yaw_from']!r} needs --mode scratch "
+                                                          f"(got {cfg.mode!r})")
+        builder["yaw_from"] = str(plan.hp["yaw_from"])
     n_eval = int(plan.hp.get("n_eval_seeds", 32))
     try:
         check_tier_training_seeds(cfg.env_id, [cfg.seed + i for i in range(plan.n_envs)]
