@@ -49,6 +49,7 @@ from controllers._ou0 import (
     advance_odometry,
     fix_measurement,
     fix_timing,
+    fix_variances,
     follower_motion,
 )
 
@@ -374,16 +375,6 @@ def imm_present(m, P, mu, T, cfg, out_x, with_cov, out_P, w):
                 out_P[a, b] = acc
 
 
-@njit(cache=True)
-def _fix_variances(cfg, dx, dy, var):
-    sp = cfg[C_SPOS] + cfg[C_SPM] * math.sqrt(dx * dx + dy * dy)
-    var[0] = sp * sp
-    var[1] = sp * sp
-    var[2] = cfg[C_SPSI] * cfg[C_SPSI]
-    var[3] = cfg[C_SVEL] * cfg[C_SVEL]
-    var[4] = cfg[C_SR] * cfg[C_SR]
-
-
 @njit(cache=True, inline="always")
 def _imm_env(i, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out, z, var, xo, Po,
              w):
@@ -406,7 +397,7 @@ def _imm_env(i, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu,
     fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, cfg[C_TAU])
     if fresh:
         dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
-        _fix_variances(cfg, dx, dy, var)
+        fix_variances(cfg[C_SPOS], cfg[C_SPM], cfg[C_SPSI], cfg[C_SVEL], cfg[C_SR], dx, dy, var)
         if init[i]:
             z[2] = m[i, 0, 2] + _wrap(z[2] - m[i, 0, 2])  # the heading on the filter's branch
             imm_update(m[i], P[i], mu[i], ng[i], t_meas - t_fix[i], z, var, cfg)

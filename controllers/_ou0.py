@@ -326,6 +326,18 @@ def fix_timing(obs, i, t_now, initialised, t_fix, v1, tau):
 
 
 @njit(cache=True, inline="always")
+def fix_variances(s_pos, s_pos_per_m, s_psi, s_vel, s_r, dx, dy, var):
+    """The fix's noise variances into var (5,): position (x, y; its sigma grows with the range
+    sqrt(dx^2 + dy^2)), heading, surge speed, turn rate (shared by the target filters)."""
+    sp = s_pos + s_pos_per_m * math.sqrt(dx * dx + dy * dy)
+    var[0] = sp * sp
+    var[1] = sp * sp
+    var[2] = s_psi * s_psi
+    var[3] = s_vel * s_vel
+    var[4] = s_r * s_r
+
+
+@njit(cache=True, inline="always")
 def fix_measurement(obs, i, odom, pf, c, s, z):
     """The fix of observation row i in env i's odometry frame into z (5,): x, y, heading, surge
     speed, turn rate; returns its offset (dx, dy) in the follower's body frame."""
@@ -371,12 +383,7 @@ def _ou0_env(i, obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x,
     fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, cfg[C_TAU])
     if fresh:
         dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
-        sp = cfg[C_SPOS] + cfg[C_SPM] * math.sqrt(dx * dx + dy * dy)
-        var[0] = sp * sp
-        var[1] = sp * sp
-        var[2] = cfg[C_SPSI] * cfg[C_SPSI]
-        var[3] = cfg[C_SVEL] * cfg[C_SVEL]
-        var[4] = cfg[C_SR] * cfg[C_SR]
+        fix_variances(cfg[C_SPOS], cfg[C_SPM], cfg[C_SPSI], cfg[C_SVEL], cfg[C_SR], dx, dy, var)
         # adaptive statistics (Welford on u, second moment of r)
         nn = stats[i, S_N] + 1.0
         d = z[3] - stats[i, S_MU]
