@@ -46,11 +46,10 @@ from controllers._ou0 import (
     E_X,
     E_Y,
     NE,
-    advance_odometry,
     fix_measurement,
     fix_timing,
     fix_variances,
-    follower_motion,
+    odometry_step,
 )
 
 # config vector (float64) indices
@@ -382,17 +381,9 @@ def _imm_env(i, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu,
     want_cov = cov_out.shape[0] > 0
     dt = cfg[C_DT]
     v1 = cfg[C_V1] != 0.0
-    pf, c, s, vx, vy = follower_motion(obs, i)
+    pf, c, s = odometry_step(obs, reset, i, odom, vel, t_now, init, dt)
     if reset[i]:
-        odom[i, 0] = 0.0
-        odom[i, 1] = 0.0
-        t_now[i] = 0.0
-        init[i] = False
         ng[i, 0] = 0
-    else:
-        advance_odometry(odom, vel, t_now, i, vx, vy, dt)
-    vel[i, 0] = vx
-    vel[i, 1] = vy
     psi_f[i] = pf
     fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, cfg[C_TAU])
     if fresh:

@@ -25,7 +25,7 @@ import math
 import numpy as np
 from numba import njit
 
-from controllers._ou0 import advance_odometry, fix_measurement, fix_timing, follower_motion
+from controllers._ou0 import fix_measurement, fix_timing, odometry_step
 
 # particle columns
 X, Y, PSI, MODE, SIDE, PROG, THR, UB, RB, WU, WR, U, R = range(13)
@@ -332,19 +332,12 @@ def pf_step(obs, reset, cfg, prior, t_now, odom, vel, init, t_fix, P, Pn, logw, 
     z = np.empty(5)
     for e in range(N):
         r_ = rs[e]
-        pf, c, s, vx, vy = follower_motion(obs, e)
+        pf, c, s = odometry_step(obs, reset, e, odom, vel, t_now, init, dt)
         if reset[e]:
-            odom[e, 0] = 0.0
-            odom[e, 1] = 0.0
-            t_now[e] = 0.0
-            init[e] = False
             r_[0] = _seed_from(obs[e])
-        else:
-            advance_odometry(odom, vel, t_now, e, vx, vy, dt)
-            if init[e]:
-                for i in range(n):
-                    _step(Pn[e, i], cfg, r_)
-        vel[e, 0], vel[e, 1] = vx, vy
+        elif init[e]:
+            for i in range(n):
+                _step(Pn[e, i], cfg, r_)
         fresh, t_meas = fix_timing(obs, e, t_now[e], init[e], t_fix[e], True, 0.0)
         if fresh:
             dx, dy = fix_measurement(obs, e, odom, pf, c, s, z)

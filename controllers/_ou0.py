@@ -310,6 +310,24 @@ def advance_odometry(odom, vel, t_now, i, vx, vy, dt):
 
 
 @njit(cache=True, inline="always")
+def odometry_step(obs, reset, i, odom, vel, t_now, init, dt):
+    """Env i's odometry frame at this control step (shared by the target filters): restarted at
+    an episode's start (origin, clock 0, no fix yet), else advanced by :func:`advance_odometry`;
+    the ground velocity kept for the next step. Returns (psi_f, cos psi_f, sin psi_f)."""
+    pf, c, s, vx, vy = follower_motion(obs, i)
+    if reset[i]:
+        odom[i, 0] = 0.0
+        odom[i, 1] = 0.0
+        t_now[i] = 0.0
+        init[i] = False
+    else:
+        advance_odometry(odom, vel, t_now, i, vx, vy, dt)
+    vel[i, 0] = vx
+    vel[i, 1] = vy
+    return pf, c, s
+
+
+@njit(cache=True, inline="always")
 def fix_timing(obs, i, t_now, initialised, t_fix, v1, tau):
     """(fresh, t_meas): whether observation row i carries a fix newer than the filter's (v1: a new
     packet, or the held one before the first; v0: a fix ``tau`` old every step; a fix not newer
@@ -354,18 +372,13 @@ def fix_measurement(obs, i, odom, pf, c, s, z):
 def _ou0_env(i, obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P, xp, Pp, stale, dlt, stats,
              out, cov_out, want_cov, dt, tu, tr, v1, sm, a_sm, F, Fh, tmp, Kb, S, xm, xh, z, var, old):
     """:func:`ou0_step` for env i (F .. old: scratch)."""
-    pf, c, s, vx, vy = follower_motion(obs, i)
+    pf, c, s = odometry_step(obs, reset, i, odom, vel, t_now, init, dt)
     if reset[i]:
-        odom[i, 0] = 0.0
-        odom[i, 1] = 0.0
-        t_now[i] = 0.0
-        init[i] = False
         for j in range(3):
             dlt[i, j] = 0.0
         for j in range(NS):
             stats[i, j] = 0.0
     else:
-        advance_odometry(odom, vel, t_now, i, vx, vy, dt)
         # the present advances one control step (and the smoothing offset decays)
         if init[i]:
             if want_cov and not stale[i]:
@@ -376,8 +389,6 @@ def _ou0_env(i, obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x,
             _step_mean(xp[i], kstep)
             for j in range(3):
                 dlt[i, j] *= a_sm
-    vel[i, 0] = vx
-    vel[i, 1] = vy
     psi_f[i] = pf
     # a newer fix?
     fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, cfg[C_TAU])
