@@ -190,10 +190,18 @@ def work():
 
 
 @njit(cache=True, inline="always")
-def _interact_predict(m, P, mu, T, cfg, with_cov, w):
+def heading_gap(m):
+    """The models' heading difference m_1 - m_0 wrapped to [-pi, pi] (:func:`_mix`'s ``dpsi``; it
+    changes only with m, at a fix, so :func:`imm_step` keeps it per env between fixes)."""
+    return _wrap(m[1, 2] - m[0, 2])
+
+
+@njit(cache=True, inline="always")
+def _interact_predict(m, P, mu, T, cfg, with_cov, w, dpsi):
     """The IMM's interaction over T and both models' predictions: the predicted mode probabilities
     c (2,), means mp (2, 5) and (if ``with_cov``) covariances Pp (2, 5, 5), in the scratch ``w``
-    (:func:`work`); the cos, sin of the predicted headings into w's cs."""
+    (:func:`work`); the cos, sin of the predicted headings into w's cs. ``dpsi``:
+    :func:`heading_gap` of m."""
     qc, c, x0, P0, mp, Pp, tmp5, J, Jh, tmpm, d, cs = w
     for j in range(2):
         for a in range(NX):
@@ -202,7 +210,7 @@ def _interact_predict(m, P, mu, T, cfg, with_cov, w):
     qc[0, 3] = cfg[C_QU]
     qc[1, 3] = cfg[C_QU]
     qc[1, 4] = cfg[C_QR]
-    _mix(m, P, mu, T, cfg[C_TS], c, x0, P0, with_cov, d)
+    _mix(m, P, mu, T, cfg[C_TS], c, x0, P0, with_cov, d, dpsi)
     for j in range(2):
         if with_cov:
             cs[j, 0], cs[j, 1] = _predict(x0[j], P0[j], T, j == 1, qc[j], mp[j], Pp[j], tmp5, J, Jh, tmpm)
@@ -227,16 +235,16 @@ def imm_init(m, P, mu, z, var):
 
 
 @njit(cache=True, inline="always")
-def _mix(m, P, mu, T, ts, c, x0, P0, with_cov, d):
+def _mix(m, P, mu, T, ts, c, x0, P0, with_cov, d, dpsi):
     """The IMM's interaction over a span T: predicted mode probabilities c (2,), mixed initial
-    means x0 (2, 5) and covariances P0 (2, 5, 5) (if ``with_cov``); d (5,) is scratch."""
+    means x0 (2, 5) and covariances P0 (2, 5, 5) (if ``with_cov``); d (5,) is scratch; dpsi:
+    :func:`heading_gap` of m."""
     p = 0.5 * (1.0 - math.exp(-2.0 * T / ts))
     for j in range(2):
         c[j] = mu[0] * (1.0 - p if j == 0 else p) + mu[1] * (p if j == 0 else 1.0 - p)
-    # the heading difference wrapped, once: m_0 - m_1 is exactly -(m_1 - m_0), and the wrap
+    # the heading difference wrapped once (dpsi): m_0 - m_1 is exactly -(m_1 - m_0), and the wrap
     # atan2(sin, cos) is odd (glibc's sin and atan2 are odd bit for bit; a libm that is not would
     # move the other model's mixed heading by an ulp)
-    dpsi = _wrap(m[1, 2] - m[0, 2])
     for j in range(2):
         cj = max(c[j], 1e-300)
         w0 = mu[0] * (1.0 - p if j == 0 else p) / cj
@@ -270,7 +278,7 @@ def imm_update(m, P, mu, ng, T, z, var, cfg):
     """One fix z (5,) with variances var (5,), T seconds after the filter's last: interaction,
     prediction of both models, gating, update and the new mode probabilities (all in place).
     Returns True if the fix's position was gated out."""
-    c, mp, Pp = _interact_predict(m, P, mu, T, cfg, True, work())
+    c, mp, Pp = _interact_predict(m, P, mu, T, cfg, True, work(), heading_gap(m))
     nu = np.empty((2, NX))
     for j in range(2):
         for a in range(NX):
@@ -343,11 +351,12 @@ def imm_update(m, P, mu, ng, T, z, var, cfg):
 
 
 @njit(cache=True, inline="always")
-def imm_present(m, P, mu, T, cfg, out_x, with_cov, out_P, w):
+def imm_present(m, P, mu, T, cfg, out_x, with_cov, out_P, w, dpsi):
     """The present state T seconds after the last fix: the models' predictions weighted by the
     predicted mode probabilities; the heading as the weighted circular mean. out_x (5,); the
-    mixture covariance into out_P (5, 5) if ``with_cov``; w: scratch (:func:`work`)."""
-    c, mp, Pp = _interact_predict(m, P, mu, T, cfg, with_cov, w)
+    mixture covariance into out_P (5, 5) if ``with_cov``; w: scratch (:func:`work`); dpsi:
+    :func:`heading_gap` of m."""
+    c, mp, Pp = _interact_predict(m, P, mu, T, cfg, with_cov, w, dpsi)
     sx, sy = 0.0, 0.0
     for a in range(NX):
         out_x[a] = 0.0
@@ -375,80 +384,75 @@ def imm_present(m, P, mu, T, cfg, out_x, with_cov, out_P, w):
 
 
 @njit(cache=True, inline="always")
-def _imm_env(i, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out, z, var, xo, Po,
-             w):
-    """:func:`imm_step` for env i (z, var, xo (5,), Po (5, 5) and w (:func:`work`): scratch)."""
-    want_cov = cov_out.shape[0] > 0
-    dt = cfg[C_DT]
-    v1 = cfg[C_V1] != 0.0
-    pf, c, s = odometry_step(obs, reset, i, odom, vel, t_now, init, dt)
-    if reset[i]:
-        ng[i, 0] = 0
-    psi_f[i] = pf
-    fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, cfg[C_TAU])
-    if fresh:
-        dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
-        fix_variances(cfg[C_SPOS], cfg[C_SPM], cfg[C_SPSI], cfg[C_SVEL], cfg[C_SR], dx, dy, var)
-        if init[i]:
-            z[2] = m[i, 0, 2] + _wrap(z[2] - m[i, 0, 2])  # the heading on the filter's branch
-            imm_update(m[i], P[i], mu[i], ng[i], t_meas - t_fix[i], z, var, cfg)
-        else:
-            imm_init(m[i], P[i], mu[i], z, var)
-            init[i] = True
-            ng[i, 0] = 0
-        t_fix[i] = t_meas
-    if init[i]:
-        imm_present(m[i], P[i], mu[i], t_now[i] - t_fix[i], cfg, xo, want_cov, Po, w)
-        out[i, E_VALID] = 1.0
-        out[i, E_X] = xo[0]
-        out[i, E_Y] = xo[1]
-        out[i, E_PSI] = xo[2]
-        out[i, E_U] = xo[3]
-        out[i, E_R] = xo[4]
-        rx = xo[0] - odom[i, 0]
-        ry = xo[1] - odom[i, 1]
-        out[i, E_RX] = c * rx + s * ry
-        out[i, E_RY] = -s * rx + c * ry
-        out[i, E_RPSI] = _wrap(xo[2] - pf)
-        out[i, E_AGE] = t_now[i] - t_fix[i]
-        if want_cov:
-            for a in range(NX):
-                for b in range(NX):
-                    cov_out[i, a, b] = Po[a, b]
-    else:
-        for j in range(NE):
-            out[i, j] = 0.0
-        if want_cov:
-            for a in range(NX):
-                for b in range(NX):
-                    cov_out[i, a, b] = 0.0
+def _prop_mean(px, py, psi, u, r, T, turn):
+    """:func:`_prop`'s mean in scalars (the same operations: the same bits), without the Jacobian:
+    (x, y, psi, u, r, cos psi, sin psi) after T. Scalars only, as :func:`_present_mean`."""
+    s0, c0 = math.sin(psi), math.cos(psi)
+    if turn:
+        rs = r
+        if abs(r) < 1e-5:
+            rs = 1e-5 if r >= 0 else -1e-5
+        p1 = psi + rs * T
+        s1, c1 = math.sin(p1), math.cos(p1)
+        ds, dc = s1 - s0, c0 - c1
+        p2 = psi + r * T
+        if rs != r:
+            return px + u * ds / rs, py + u * dc / rs, p2, u, r, math.cos(p2), math.sin(p2)
+        return px + u * ds / rs, py + u * dc / rs, p2, u, r, c1, s1
+    return px + u * T * c0, py + u * T * s0, psi, u, 0.0, c0, s0
 
 
 @njit(cache=True, inline="always")
-def _copy_row(i, src, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng):
-    """Env i's row of every state array from the state ``src`` (the same arrays, as a tuple)."""
-    s_t_now, s_odom, s_vel, s_psi_f, s_init, s_t_fix, s_m, s_P, s_mu, s_ng = src
-    t_now[i] = s_t_now[i]
-    psi_f[i] = s_psi_f[i]
-    init[i] = s_init[i]
-    t_fix[i] = s_t_fix[i]
-    ng[i, 0] = s_ng[i, 0]
-    for a in range(2):
-        odom[i, a] = s_odom[i, a]
-        vel[i, a] = s_vel[i, a]
-        mu[i, a] = s_mu[i, a]
-        for b in range(NX):
-            m[i, a, b] = s_m[i, a, b]
-            for c in range(NX):
-                P[i, a, b, c] = s_P[i, a, b, c]
+def _present_mean(m, mu, i, T, ts, dpsi):
+    """:func:`imm_present` without the covariance for env i of the batch state (m (N, 2, 5), mu
+    (N, 2); dpsi: :func:`heading_gap` of m[i]): the same operations as the array functions
+    (:func:`_mix`, :func:`_prop`), in scalars. (Array views made per env cost numba an atomic
+    reference count each, which took most of this path's time.) Returns (x, y, psi, u, r)."""
+    p = 0.5 * (1.0 - math.exp(-2.0 * T / ts))
+    mu0, mu1 = mu[i, 0], mu[i, 1]
+    c0 = mu0 * (1.0 - p) + mu1 * p
+    c1 = mu0 * p + mu1 * (1.0 - p)
+    # the mixed initial means (as _mix): x0_j = m_j + w_oj (m_o - m_j), the heading gap wrapped
+    cj = max(c0, 1e-300)
+    wo = mu1 * p / cj
+    a0 = m[i, 0, 0] + wo * (m[i, 1, 0] - m[i, 0, 0])
+    a1 = m[i, 0, 1] + wo * (m[i, 1, 1] - m[i, 0, 1])
+    a2 = m[i, 0, 2] + wo * dpsi
+    a3 = m[i, 0, 3] + wo * (m[i, 1, 3] - m[i, 0, 3])
+    cj = max(c1, 1e-300)
+    wo = mu0 * p / cj
+    b0 = m[i, 1, 0] + wo * (m[i, 0, 0] - m[i, 1, 0])
+    b1 = m[i, 1, 1] + wo * (m[i, 0, 1] - m[i, 1, 1])
+    b2 = m[i, 1, 2] + wo * -dpsi
+    b3 = m[i, 1, 3] + wo * (m[i, 0, 3] - m[i, 1, 3])
+    b4 = m[i, 1, 4] + wo * (m[i, 0, 4] - m[i, 1, 4])
+    x0, y0, h0, u0, r0, k0, s0 = _prop_mean(a0, a1, a2, a3, 0.0, T, False)
+    x1, y1, h1, u1, r1, k1, s1 = _prop_mean(b0, b1, b2, b3, b4, T, True)
+    # the weighted mean (as imm_present: 0 + c_0 (.) + c_1 (.)) and the circular mean heading
+    x = 0.0 + c0 * x0 + c1 * x1
+    y = 0.0 + c0 * y0 + c1 * y1
+    u = 0.0 + c0 * u0 + c1 * u1
+    r = 0.0 + c0 * r0 + c1 * r1
+    sx = 0.0 + c0 * k0 + c1 * k1
+    sy = 0.0 + c0 * s0 + c1 * s1
+    ref = h0 if c0 >= c1 else h1
+    return x, y, ref + _wrap(math.atan2(sy, sx) - ref), u, r
 
 
-def _imm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out, src,
+def _imm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, gap, out, cov_out, src,
                 copy_rows):
     """:func:`imm_step` over ``chunks`` contiguous blocks of envs (a parallel loop in the threaded
     build), each block with its own scratch; with ``copy_rows`` each env's state is first copied
-    from ``src``."""
+    from ``src``.
+
+    The per-env body is written out here, with scalars and whole-array indexing: an inlined helper
+    taking the ~20 state arrays (or a tuple of them) costs numba an atomic reference count per
+    array and env, which took two thirds of this kernel's time (the same operations either way)."""
     n = obs.shape[0]
+    s_t_now, s_odom, s_vel, s_psi_f, s_init, s_t_fix, s_m, s_P, s_mu, s_ng, s_gap = src
+    want_cov = cov_out.shape[0] > 0
+    dt, tau, ts = cfg[C_DT], cfg[C_TAU], cfg[C_TS]
+    v1 = cfg[C_V1] != 0.0
     for ch in prange(chunks):
         z = np.empty(NX)
         var = np.empty(NX)
@@ -456,10 +460,67 @@ def _imm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m
         Po = np.empty((NX, NX))
         w = work()
         for i in range(ch * n // chunks, (ch + 1) * n // chunks):
-            if copy_rows:
-                _copy_row(i, src, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng)
-            _imm_env(i, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out, z, var,
-                     xo, Po, w)
+            if copy_rows:  # env i's row of every state array from src
+                t_now[i] = s_t_now[i]
+                psi_f[i] = s_psi_f[i]
+                init[i] = s_init[i]
+                t_fix[i] = s_t_fix[i]
+                ng[i, 0] = s_ng[i, 0]
+                gap[i] = s_gap[i]
+                for a in range(2):
+                    odom[i, a] = s_odom[i, a]
+                    vel[i, a] = s_vel[i, a]
+                    mu[i, a] = s_mu[i, a]
+                    for b in range(NX):
+                        m[i, a, b] = s_m[i, a, b]
+                        for c in range(NX):
+                            P[i, a, b, c] = s_P[i, a, b, c]
+            pf, c, s = odometry_step(obs, reset, i, odom, vel, t_now, init, dt)
+            if reset[i]:
+                ng[i, 0] = 0
+            psi_f[i] = pf
+            fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, tau)
+            if fresh:
+                dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
+                fix_variances(cfg[C_SPOS], cfg[C_SPM], cfg[C_SPSI], cfg[C_SVEL], cfg[C_SR], dx, dy, var)
+                if init[i]:
+                    z[2] = m[i, 0, 2] + _wrap(z[2] - m[i, 0, 2])  # the heading on the filter's branch
+                    imm_update(m[i], P[i], mu[i], ng[i], t_meas - t_fix[i], z, var, cfg)
+                else:
+                    imm_init(m[i], P[i], mu[i], z, var)
+                    init[i] = True
+                    ng[i, 0] = 0
+                t_fix[i] = t_meas
+                gap[i] = heading_gap(m[i])  # (m changes only here)
+            if init[i]:
+                T = t_now[i] - t_fix[i]
+                if want_cov:
+                    imm_present(m[i], P[i], mu[i], T, cfg, xo, True, Po, w, gap[i])
+                    x, y, h, u, r = xo[0], xo[1], xo[2], xo[3], xo[4]
+                    for a in range(NX):
+                        for b in range(NX):
+                            cov_out[i, a, b] = Po[a, b]
+                else:
+                    x, y, h, u, r = _present_mean(m, mu, i, T, ts, gap[i])
+                out[i, E_VALID] = 1.0
+                out[i, E_X] = x
+                out[i, E_Y] = y
+                out[i, E_PSI] = h
+                out[i, E_U] = u
+                out[i, E_R] = r
+                rx = x - odom[i, 0]
+                ry = y - odom[i, 1]
+                out[i, E_RX] = c * rx + s * ry
+                out[i, E_RY] = -s * rx + c * ry
+                out[i, E_RPSI] = _wrap(h - pf)
+                out[i, E_AGE] = T
+            else:
+                for j in range(NE):
+                    out[i, j] = 0.0
+                if want_cov:
+                    for a in range(NX):
+                        for b in range(NX):
+                            cov_out[i, a, b] = 0.0
 
 
 #: the step, serial and on numba's threads (per env the same operations: the same bits)
@@ -469,23 +530,24 @@ _imm_threads = recompiled(_imm_chunks, "_imm_chunks_par", cache=True, parallel=T
 THREADED_MIN_ENVS = 256
 
 
-def imm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, out, cov_out, src=None):
+def imm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, gap, out, cov_out, src=None):
     """One control step of the IMM filter for every env (all arrays updated in place).
 
     obs (N, W) observations (W = 16: v0, a fix ``tau`` old every step; 20: v1); reset (N,) bool;
     cfg: the config vector (C_*). State: t_now, psi_f (N,), odom, vel (N, 2), init (N,) bool,
-    t_fix (N,), m (N, 2, 5), P (N, 2, 5, 5), mu (N, 2), ng (N, 1) (gated fixes in a row).
+    t_fix (N,), m (N, 2, 5), P (N, 2, 5, 5), mu (N, 2), ng (N, 1) (gated fixes in a row), gap (N,)
+    (:func:`heading_gap` of m, set at each fix).
     out (N, NE): the present estimate (the OU0 kernel's columns E_*); cov_out (N, 5, 5) or
     (0, 5, 5): the present mixture covariance (or not wanted). The odometry frame and the timing
     of fixes are the OU0 kernel's: a fix not newer than the filter's is ignored (never observed
     in the envs: the receiver keeps the newest packet). From :data:`THREADED_MIN_ENVS` envs on,
     the envs are split over numba's threads (the same result). ``src``: None (the state arrays are
-    updated in place) or a tuple of state arrays of the same shapes (t_now .. ng) to start from
+    updated in place) or a tuple of state arrays of the same shapes (t_now .. gap) to start from
     (the state arrays given are then overwritten: a peek's copy made inside the kernel).
     """
     n = obs.shape[0]
     threads = numba.get_num_threads() if n >= THREADED_MIN_ENVS else 1
-    dst = (t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng)
+    dst = (t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, gap)
     step = _imm_threads if threads > 1 else _imm_serial
     step(threads, obs, reset, cfg, *dst, out, cov_out, dst if src is None else tuple(src), src is not None)
 
@@ -543,7 +605,7 @@ def imm_filter_fixes(t_meas, z, var, cfg, t_query):
         m[:, :] = snap_m[nbuf - 1]
         P[:, :, :] = snap_P[nbuf - 1]
         mu[:] = snap_mu[nbuf - 1]
-        imm_present(m, P, mu, t_query[f] - t_meas[last], cfg, xo, False, Po, w)
+        imm_present(m, P, mu, t_query[f] - t_meas[last], cfg, xo, False, Po, w, heading_gap(m))
         out[f] = xo
         mus[f] = mu
     return out, mus
@@ -561,8 +623,9 @@ def imm_trajectory(m, P, mu, init, T, cfg):
     for i in range(n):
         if not init[i]:
             continue
+        gap = heading_gap(m[i])
         for k in range(K):
-            imm_present(m[i], P[i], mu[i], T[i, k], cfg, xo, False, Po, w)
+            imm_present(m[i], P[i], mu[i], T[i, k], cfg, xo, False, Po, w, gap)
             for a in range(NX):
                 out[i, k, a] = xo[a]
     return out

@@ -426,12 +426,13 @@ class _IMMState:
     P: np.ndarray  # (N, 2, 5, 5)
     mu: np.ndarray  # (N, 2) mode probabilities (CV, CT)
     ng: np.ndarray  # (N, 1) int64: gated fixes in a row
+    gap: np.ndarray  # (N,) [rad] the models' heading difference, wrapped (kept from fix to fix)
 
     @classmethod
     def fresh(cls, n: int) -> _IMMState:
         return cls(np.zeros(n), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n), np.zeros(n, dtype=bool),
                    np.zeros(n), np.zeros((n, 2, 5)), np.tile(np.eye(5), (n, 2, 1, 1)), np.full((n, 2), 0.5),
-                   np.zeros((n, 1), dtype=np.int64))
+                   np.zeros((n, 1), dtype=np.int64), np.zeros(n))
 
     @property
     def x(self) -> np.ndarray:  # (the batch size, as the other states' x)
@@ -617,7 +618,7 @@ class TargetEstimator:
         out = np.empty((n, _ou0.NE))
         cov = np.empty((n if with_cov else 0, 5, 5))
         _imm.imm_step(obs, mask, self._cfg, st.t_now, st.odom, st.vel, st.psi_f, st.init, st.t_fix, st.m, st.P,
-                      st.mu, st.ng, out, cov, None if src is None else _state_arrays(src))
+                      st.mu, st.ng, st.gap, out, cov, None if src is None else _state_arrays(src))
         # (x, y, psi, u, r): the kernel's columns E_X .. E_R in this order, zero where no fix yet
         state = out[:, _IMM_STATE_COLUMNS]
         return _kernel_estimate(out, state, cov if with_cov else None, zeroed=True)

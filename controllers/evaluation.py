@@ -373,9 +373,10 @@ def evaluate_batched(policies: Sequence[Any], env_id: str = "AUVFollow-S4-v0", s
     T = spec.n_steps
     blocks = [slice(p * S, (p + 1) * S) for p in range(P)]
     has_ref = [hasattr(p, "reference") for p in policies]
-    # per env (row), one column per step: each episode's series is contiguous for its metrics
-    err = np.full((n, T), np.nan)
-    err_own = np.full((n, T), np.nan)
+    # one row per step while stepping (each step writes a contiguous row); transposed to one row
+    # per env at the end, so that each episode's series is contiguous for its metrics
+    err_k = np.full((T, n), np.nan)
+    err_own_k = np.full((T, n), np.nan)
     own = np.full((T, n, 3), np.nan) if trajectories else None
     own_k = [np.full((S, 3), np.nan) for _ in range(P)]  # this step's own reference of each block
     pose = np.zeros((T, n, 3)) if trajectories else None
@@ -396,12 +397,12 @@ def evaluate_batched(policies: Sequence[Any], env_id: str = "AUVFollow-S4-v0", s
                       episode_start=start, deterministic=deterministic), act_shape, names[p], env_id, seeds, k)
         start = np.zeros(S, dtype=bool)
         obs, reward, term, trunc, info = venv.step(actions)
-        np.copyto(err[:, k], info["tracking_error"], where=alive)  # err is NaN where not written
+        np.copyto(err_k[k], info["tracking_error"], where=alive)  # err is NaN where not written
         np.add(ret, reward, out=ret, where=alive)
         for p, blk in enumerate(blocks):
             if has_ref[p]:
                 own_k[p][...] = _call(policies[p].reference, "reference", names[p], env_id, seeds, k, obs[blk])
-                np.hypot(own_k[p][:, 0], own_k[p][:, 1], out=err_own[blk, k])
+                np.hypot(own_k[p][:, 0], own_k[p][:, 1], out=err_own_k[k, blk])
                 if trajectories:
                     own[k, blk] = own_k[p]
         if trajectories:
@@ -418,6 +419,7 @@ def evaluate_batched(policies: Sequence[Any], env_id: str = "AUVFollow-S4-v0", s
             if not alive.any():
                 break
     venv.close()
+    err, err_own = np.ascontiguousarray(err_k.T), np.ascontiguousarray(err_own_k.T)
     nan = np.full(T, np.nan)
     for p in range(P):
         if not has_ref[p]:  # own reference NaN: its distance as _episode_outputs computes it

@@ -286,3 +286,42 @@ def test_threaded_step_equals_the_serial_step_bit_for_bit(monkeypatch):
     import numba
 
     assert calls["threads"] == (80 if numba.get_num_threads() > 1 else 0)
+
+
+def test_present_estimate_without_covariance_equals_the_covariance_path_bit_for_bit():
+    """The kernel computes the present mean in scalars when no covariance is wanted (the array
+    functions _mix, _prop and imm_present otherwise): the same operations, so the estimates are the
+    same bits, along real Leader-Hard episodes (fixes, gating, restarts), serial and threaded."""
+    import gymnasium as gym
+
+    import auv_follow_env  # noqa: F401
+    from controllers import make_controller
+    from controllers.estimator import TargetEstimator
+
+    for n in (7, _imm.THREADED_MIN_ENVS + 3):
+        venv = gym.make_vec("AUVFollow-Leader-Hard-v1", num_envs=n, vectorization_mode="vector_entry_point",
+                            episode_s=12.0, steady_start_s=5.0)
+        spec = venv.unwrapped.task_spec
+        driver = make_controller("PROPOSED_IMM_DOB", spec)
+        cfg = driver.estimator.config
+        with_cov, without = TargetEstimator(spec, cfg), TargetEstimator(spec, cfg)
+        obs, _ = venv.reset(seed=list(range(900, 900 + n)))
+        start = np.ones(n, dtype=bool)
+        fixes = 0
+        for k in range(240):
+            o = np.asarray(obs, dtype=np.float64)
+            before = None if with_cov._s is None else with_cov._s.t_fix.copy()
+            a = with_cov.step(o, start, with_cov=True)
+            b = without.step(o, start, with_cov=False)
+            if before is not None:
+                fixes += int(np.sum(with_cov._s.t_fix != before))
+            assert b.cov is None and a.cov.shape == (n, 5, 5)
+            for f in ("rel_x", "rel_y", "rel_psi", "u", "v", "r", "age", "valid"):
+                assert np.array_equal(getattr(a, f), getattr(b, f)), (f, k, n)
+            act, _ = driver.predict(o, episode_start=start)
+            obs, _, term, trunc, _ = venv.step(act)
+            start = term | trunc
+        assert fixes > 2 * n  # fixes after each env's first (the update path ran)
+        for f in ("m", "P", "mu", "ng", "gap", "t_fix"):
+            assert np.array_equal(getattr(with_cov._s, f), getattr(without._s, f)), f
+        venv.close()
