@@ -142,11 +142,12 @@ def step_constants(dt: float, tu: float, tr: float) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
-def _step_mean(x, k):
-    """Advance the mean ``x`` (6,) in place by one control step (constants ``k`` of
-    :func:`step_constants`)."""
-    psi0, u0, r0, ub = x[2], x[3], x[4], x[5]
+@njit(cache=True, inline="always")
+def _step_mean_row(x, i, k):
+    """Advance the mean of row i of x (N, 6) in place by one control step (constants ``k`` of
+    :func:`step_constants`); indexing the whole array (a row view per env costs numba a reference
+    count)."""
+    psi0, u0, r0, ub = x[i, 2], x[i, 3], x[i, 4], x[i, 5]
     px = 0.0
     py = 0.0
     for j in range(3):
@@ -154,11 +155,11 @@ def _step_mean(x, k):
         u = ub + (u0 - ub) * k[1, j]
         px += k[0, j] * u * math.cos(psi)
         py += k[0, j] * u * math.sin(psi)
-    x[0] += px
-    x[1] += py
-    x[2] = psi0 + r0 * k[2, 3]
-    x[3] = ub + (u0 - ub) * k[0, 3]
-    x[4] = r0 * k[1, 3]
+    x[i, 0] += px
+    x[i, 1] += py
+    x[i, 2] = psi0 + r0 * k[2, 3]
+    x[i, 3] = ub + (u0 - ub) * k[0, 3]
+    x[i, 4] = r0 * k[1, 3]
 
 
 @njit(cache=True, inline="always")
@@ -368,117 +369,15 @@ def fix_measurement(obs, i, odom, pf, c, s, z):
     return dx, dy
 
 
-@njit(cache=True)
-def _ou0_env(i, obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P, xp, Pp, stale, dlt, stats,
-             out, cov_out, want_cov, dt, tu, tr, v1, sm, a_sm, F, Fh, tmp, Kb, S, xm, xh, z, var, old):
-    """:func:`ou0_step` for env i (F .. old: scratch)."""
-    pf, c, s = odometry_step(obs, reset, i, odom, vel, t_now, init, dt)
-    if reset[i]:
-        for j in range(3):
-            dlt[i, j] = 0.0
-        for j in range(NS):
-            stats[i, j] = 0.0
-    else:
-        # the present advances one control step (and the smoothing offset decays)
-        if init[i]:
-            if want_cov and not stale[i]:
-                qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
-                _span(xp[i], Pp[i], dt, tu, tr, _GL4_X, _GL4_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, Pp[i], tmp)
-            else:
-                stale[i] = True
-            _step_mean(xp[i], kstep)
-            for j in range(3):
-                dlt[i, j] *= a_sm
-    psi_f[i] = pf
-    # a newer fix?
-    fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, cfg[C_TAU])
-    if fresh:
-        dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
-        fix_variances(cfg[C_SPOS], cfg[C_SPM], cfg[C_SPSI], cfg[C_SVEL], cfg[C_SR], dx, dy, var)
-        # adaptive statistics (Welford on u, second moment of r)
-        nn = stats[i, S_N] + 1.0
-        d = z[3] - stats[i, S_MU]
-        stats[i, S_MU] += d / nn
-        stats[i, S_M2] += d * (z[3] - stats[i, S_MU])
-        stats[i, S_R2] += z[4] * z[4]
-        stats[i, S_N] = nn
-        qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
-        had = init[i]
-        if had:
-            old[0] = xp[i, 0] + dlt[i, 0]
-            old[1] = xp[i, 1] + dlt[i, 1]
-            old[2] = xp[i, 2] + dlt[i, 2]
-            T = t_meas - t_fix[i]
-            _span(x[i], P[i], T, tu, tr, _GL16_X, _GL16_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, P[i], tmp)
-            for j in range(6):
-                x[i, j] = xm[j]
-            _update(x[i], P[i], z, var, Kb, S, tmp)
-        else:
-            for j in range(5):
-                x[i, j] = z[j]
-            x[i, 5] = z[3]
-            for a in range(6):
-                for b in range(6):
-                    P[i, a, b] = 0.0
-            for j in range(5):
-                P[i, j, j] = var[j]
-            P[i, 5, 5] = cfg[C_SUB0] * cfg[C_SUB0]
-            init[i] = True
-        t_fix[i] = t_meas
-        # the present from the new filter state
-        T = t_now[i] - t_meas
-        _propagate(x[i], T, tu, tr, _GL16_X, _GL16_W, xm, F)
-        if want_cov:
-            _propagate(x[i], 0.5 * T, tu, tr, _GL16_X, _GL16_W, xh, Fh)
-            _predict_cov(P[i], F, Fh, T, qu, qr, cfg[C_QUB], Pp[i], tmp)
-            stale[i] = False
-        else:
-            stale[i] = True
-        for j in range(6):
-            xp[i, j] = xm[j]
-        if had and sm > 0.0:  # keep the returned pose where it was: the jump decays from here
-            dlt[i, 0] = old[0] - xp[i, 0]
-            dlt[i, 1] = old[1] - xp[i, 1]
-            dlt[i, 2] = _wrap(old[2] - xp[i, 2])
-    # the returned estimate
-    if init[i]:
-        ex = xp[i, 0] + dlt[i, 0]
-        ey = xp[i, 1] + dlt[i, 1]
-        pt = xp[i, 2] + dlt[i, 2]
-        out[i, E_VALID] = 1.0
-        out[i, E_X] = ex
-        out[i, E_Y] = ey
-        out[i, E_PSI] = pt
-        out[i, E_U] = xp[i, 3]
-        out[i, E_R] = xp[i, 4]
-        rx = ex - odom[i, 0]
-        ry = ey - odom[i, 1]
-        out[i, E_RX] = c * rx + s * ry
-        out[i, E_RY] = -s * rx + c * ry
-        out[i, E_RPSI] = _wrap(pt - pf)
-        out[i, E_AGE] = t_now[i] - t_fix[i]
-        if want_cov and stale[i]:  # the present covariance from the filter at t_fix
-            T = t_now[i] - t_fix[i]
-            qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
-            _span(x[i], P[i], T, tu, tr, _GL16_X, _GL16_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, Pp[i], tmp)
-            stale[i] = False
-        if want_cov:
-            for a in range(6):
-                for b in range(6):
-                    cov_out[i, a, b] = Pp[i, a, b]
-    else:
-        for j in range(NE):
-            out[i, j] = 0.0
-        if want_cov:
-            for a in range(6):
-                for b in range(6):
-                    cov_out[i, a, b] = 0.0
-
-
 def _ou0_chunks(chunks, obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P, xp, Pp, stale, dlt,
                 stats, out, cov_out):
     """:func:`ou0_step` over ``chunks`` contiguous blocks of envs (a parallel loop in the threaded
-    build), each block with its own scratch."""
+    build), each block with its own scratch.
+
+    The per-env body is written out here, indexing whole arrays (no per-env views on the common
+    path): a helper called with ~38 arguments, or a view per env, costs numba an atomic reference
+    count per array and env, which took most of this kernel's time (the same operations either
+    way)."""
     n = obs.shape[0]
     want_cov = cov_out.shape[0] > 0
     dt = cfg[C_DT]
@@ -498,8 +397,108 @@ def _ou0_chunks(chunks, obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t
         var = np.empty(5)
         old = np.empty(3)
         for i in range(ch * n // chunks, (ch + 1) * n // chunks):
-            _ou0_env(i, obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t_fix, x, P, xp, Pp, stale, dlt,
-                     stats, out, cov_out, want_cov, dt, tu, tr, v1, sm, a_sm, F, Fh, tmp, Kb, S, xm, xh, z, var, old)
+            pf, c, s = odometry_step(obs, reset, i, odom, vel, t_now, init, dt)
+            if reset[i]:
+                for j in range(3):
+                    dlt[i, j] = 0.0
+                for j in range(NS):
+                    stats[i, j] = 0.0
+            else:
+                # the present advances one control step (and the smoothing offset decays)
+                if init[i]:
+                    if want_cov and not stale[i]:
+                        qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
+                        _span(xp[i], Pp[i], dt, tu, tr, _GL4_X, _GL4_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, Pp[i], tmp)
+                    else:
+                        stale[i] = True
+                    _step_mean_row(xp, i, kstep)
+                    for j in range(3):
+                        dlt[i, j] *= a_sm
+            psi_f[i] = pf
+            # a newer fix?
+            fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, cfg[C_TAU])
+            if fresh:
+                dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
+                fix_variances(cfg[C_SPOS], cfg[C_SPM], cfg[C_SPSI], cfg[C_SVEL], cfg[C_SR], dx, dy, var)
+                # adaptive statistics (Welford on u, second moment of r)
+                nn = stats[i, S_N] + 1.0
+                d = z[3] - stats[i, S_MU]
+                stats[i, S_MU] += d / nn
+                stats[i, S_M2] += d * (z[3] - stats[i, S_MU])
+                stats[i, S_R2] += z[4] * z[4]
+                stats[i, S_N] = nn
+                qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
+                had = init[i]
+                if had:
+                    old[0] = xp[i, 0] + dlt[i, 0]
+                    old[1] = xp[i, 1] + dlt[i, 1]
+                    old[2] = xp[i, 2] + dlt[i, 2]
+                    T = t_meas - t_fix[i]
+                    _span(x[i], P[i], T, tu, tr, _GL16_X, _GL16_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, P[i], tmp)
+                    for j in range(6):
+                        x[i, j] = xm[j]
+                    _update(x[i], P[i], z, var, Kb, S, tmp)
+                else:
+                    for j in range(5):
+                        x[i, j] = z[j]
+                    x[i, 5] = z[3]
+                    for a in range(6):
+                        for b in range(6):
+                            P[i, a, b] = 0.0
+                    for j in range(5):
+                        P[i, j, j] = var[j]
+                    P[i, 5, 5] = cfg[C_SUB0] * cfg[C_SUB0]
+                    init[i] = True
+                t_fix[i] = t_meas
+                # the present from the new filter state
+                T = t_now[i] - t_meas
+                _propagate(x[i], T, tu, tr, _GL16_X, _GL16_W, xm, F)
+                if want_cov:
+                    _propagate(x[i], 0.5 * T, tu, tr, _GL16_X, _GL16_W, xh, Fh)
+                    _predict_cov(P[i], F, Fh, T, qu, qr, cfg[C_QUB], Pp[i], tmp)
+                    stale[i] = False
+                else:
+                    stale[i] = True
+                for j in range(6):
+                    xp[i, j] = xm[j]
+                if had and sm > 0.0:  # keep the returned pose where it was: the jump decays from here
+                    dlt[i, 0] = old[0] - xp[i, 0]
+                    dlt[i, 1] = old[1] - xp[i, 1]
+                    dlt[i, 2] = _wrap(old[2] - xp[i, 2])
+            # the returned estimate
+            if init[i]:
+                ex = xp[i, 0] + dlt[i, 0]
+                ey = xp[i, 1] + dlt[i, 1]
+                pt = xp[i, 2] + dlt[i, 2]
+                out[i, E_VALID] = 1.0
+                out[i, E_X] = ex
+                out[i, E_Y] = ey
+                out[i, E_PSI] = pt
+                out[i, E_U] = xp[i, 3]
+                out[i, E_R] = xp[i, 4]
+                rx = ex - odom[i, 0]
+                ry = ey - odom[i, 1]
+                out[i, E_RX] = c * rx + s * ry
+                out[i, E_RY] = -s * rx + c * ry
+                out[i, E_RPSI] = _wrap(pt - pf)
+                out[i, E_AGE] = t_now[i] - t_fix[i]
+                if want_cov and stale[i]:  # the present covariance from the filter at t_fix
+                    T = t_now[i] - t_fix[i]
+                    qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
+                    _span(x[i], P[i], T, tu, tr, _GL16_X, _GL16_W, qu, qr, cfg[C_QUB], xm, F, xh, Fh, Pp[i], tmp)
+                    stale[i] = False
+                if want_cov:
+                    for a in range(6):
+                        for b in range(6):
+                            cov_out[i, a, b] = Pp[i, a, b]
+            else:
+                for j in range(NE):
+                    out[i, j] = 0.0
+                if want_cov:
+                    for a in range(6):
+                        for b in range(6):
+                            cov_out[i, a, b] = 0.0
+
 
 
 #: the step, serial and on numba's threads (per env the same operations: the same bits)
