@@ -338,9 +338,10 @@ def _same_bits(a, b):
     return acc == 0
 
 
-def _fusable(obs) -> bool:
-    """A 2-D float64 batch of a known layout (what the compiled passes read)."""
-    return (isinstance(obs, np.ndarray) and obs.ndim == 2 and obs.dtype == np.float64
+def _fusable(obs, dtypes=(np.float64,)) -> bool:
+    """A 2-D batch of a known layout and of one of ``dtypes`` (float64: what the compiled passes
+    read)."""
+    return (isinstance(obs, np.ndarray) and obs.ndim == 2 and obs.dtype in dtypes
             and obs.shape[1] in LAYOUTS)
 
 
@@ -387,10 +388,10 @@ class HierarchicalController(ScriptedPolicy):
         return (self._fused and self.estimator is None and self.disturbance_observer is None and _fusable(obs)
                 and type(self)._generate is HierarchicalController._generate)
 
-    def _uses_fused_estimate(self, obs) -> bool:
+    def _uses_fused_estimate(self, obs, dtypes=(np.float64,)) -> bool:
         """The compiled passes on the estimator's output (the estimator itself runs as always)."""
         dob = self.disturbance_observer
-        return (self._fused and self.estimator is not None and _fusable(obs)
+        return (self._fused and self.estimator is not None and _fusable(obs, dtypes)
                 and type(self)._estimate is HierarchicalController._estimate
                 and (dob is None or dob.fusable))
 
@@ -468,15 +469,18 @@ class HierarchicalController(ScriptedPolicy):
     def reference(self, observation) -> np.ndarray:
         obs = np.atleast_2d(observation)
         if self.estimator is not None:
-            a = np.asarray(obs, dtype=np.float64)
-            if self._uses_fused_estimate(a):
-                est = self.estimator.step(a, None, commit=False, with_cov=False)
-                ref = np.empty((a.shape[0], 3))
+            if obs.dtype not in (np.float64, np.float32):
+                obs = np.asarray(obs, dtype=np.float64)
+            if self._uses_fused_estimate(obs, (np.float64, np.float32)):
+                # the estimator converts a float32 batch itself: its float64 copy is then private,
+                # and the peek keeps it without another copy
+                est = self.estimator.step(obs, None, commit=False, with_cov=False)
+                ref = np.empty((obs.shape[0], 3))
                 p_d = self.spec.p_d
-                _passes(a.shape[0])[2](est.rel_x, est.rel_y, est.rel_psi, est.valid, float(p_d[0]), float(p_d[1]),
-                                       float(self.spec.psi_d), ref)
+                _passes(obs.shape[0])[2](est.rel_x, est.rel_y, est.rel_psi, est.valid, float(p_d[0]), float(p_d[1]),
+                                         float(self.spec.psi_d), ref)
                 return ref
-            _, ref, _ = self._estimate(a, None, commit=False)
+            _, ref, _ = self._estimate(np.asarray(obs, dtype=np.float64), None, commit=False)
             return np.stack(ref, axis=-1)
         a = np.asarray(obs, dtype=np.float64)
         if self._uses_fused(a):

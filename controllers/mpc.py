@@ -439,7 +439,10 @@ def _reference_track(estimator: TargetEstimator, spec: TaskSpec, times: np.ndarr
 
 def _own_reference(estimator: TargetEstimator, spec: TaskSpec, observation) -> np.ndarray:
     """The MPC's own reference point now (N, 3), relative to the follower; a peek at the filter."""
-    obs = np.atleast_2d(np.asarray(observation, dtype=np.float64))
+    obs = np.atleast_2d(observation)
+    if obs.dtype not in (np.float64, np.float32):
+        obs = np.asarray(obs, dtype=np.float64)
+    # (a float32 batch is converted by the estimator: its copy is private, kept by the peek as is)
     est = estimator.step(obs, None, commit=False, with_cov=False)
     pdx, pdy = spec.p_d
     c, s = np.cos(est.rel_psi), np.sin(est.rel_psi)
