@@ -22,9 +22,11 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
+from auv_follow_env.dynamics import recompiled
 from controllers._ou0 import fix_measurement, fix_timing, odometry_step
 
 # particle columns
@@ -316,7 +318,6 @@ def _seed_from(obs_row):
     return h
 
 
-@njit(cache=True)
 def pf_step(obs, reset, cfg, prior, t_now, odom, vel, init, t_fix, P, Pn, logw, rs, out):
     """One control step of the particle filter for every env (all arrays updated in place).
 
@@ -326,84 +327,108 @@ def pf_step(obs, reset, cfg, prior, t_now, odom, vel, init, t_fix, P, Pn, logw, 
     observation). out (N, NF): validity, the weighted mean pose (odometry frame; heading the
     weighted circular mean), speed and turn rate, the weighted mean reference point relative to
     the follower in its body frame, the newest fix's age and the effective sample share after the
-    last fix's weighting."""
-    N, n = P.shape[0], P.shape[1]
+    last fix's weighting. From :data:`THREADED_MIN_ENVS` envs on, the envs are split over numba's
+    threads (each env draws from its own generator: the same result)."""
+    threads = numba.get_num_threads() if obs.shape[0] >= THREADED_MIN_ENVS else 1
+    step = _pf_threads if threads > 1 else _pf_serial
+    step(threads, obs, reset, cfg, prior, t_now, odom, vel, init, t_fix, P, Pn, logw, rs, out)
+
+
+def _pf_chunks(chunks, obs, reset, cfg, prior, t_now, odom, vel, init, t_fix, P, Pn, logw, rs, out):
+    """:func:`pf_step` over ``chunks`` contiguous blocks of envs (a parallel loop in the threaded
+    build)."""
+    N = P.shape[0]
+    for ch in prange(chunks):
+        z = np.empty(5)
+        for e in range(ch * N // chunks, (ch + 1) * N // chunks):
+            _pf_env(e, obs, reset, cfg, prior, t_now, odom, vel, init, t_fix, P, Pn, logw, rs, out, z)
+
+
+@njit(cache=True)
+def _pf_env(e, obs, reset, cfg, prior, t_now, odom, vel, init, t_fix, P, Pn, logw, rs, out, z):
+    """:func:`pf_step` for env e (z (5,): scratch)."""
+    n = P.shape[1]
     dt = cfg[C_DT]
-    z = np.empty(5)
-    for e in range(N):
-        r_ = rs[e]
-        pf, c, s = odometry_step(obs, reset, e, odom, vel, t_now, init, dt)
-        if reset[e]:
-            r_[0] = _seed_from(obs[e])
-        elif init[e]:
+    r_ = rs[e]
+    pf, c, s = odometry_step(obs, reset, e, odom, vel, t_now, init, dt)
+    if reset[e]:
+        r_[0] = _seed_from(obs[e])
+    elif init[e]:
+        for i in range(n):
+            _step(Pn[e, i], cfg, r_)
+    fresh, t_meas = fix_timing(obs, e, t_now[e], init[e], t_fix[e], True, 0.0)
+    if fresh:
+        dx, dy = fix_measurement(obs, e, odom, pf, c, s, z)
+        sig = cfg[C_SPOS] + cfg[C_SPM] * math.sqrt(dx * dx + dy * dy)
+        span = 0.0
+        if not init[e]:
             for i in range(n):
-                _step(Pn[e, i], cfg, r_)
-        fresh, t_meas = fix_timing(obs, e, t_now[e], init[e], t_fix[e], True, 0.0)
-        if fresh:
-            dx, dy = fix_measurement(obs, e, odom, pf, c, s, z)
-            sig = cfg[C_SPOS] + cfg[C_SPM] * math.sqrt(dx * dx + dy * dy)
-            span = 0.0
-            if not init[e]:
-                for i in range(n):
-                    _init_particle(P[e, i], prior, cfg, z, r_)
-                    logw[e, i] = 0.0
-                init[e] = True
-            else:
-                span = max(t_meas - t_fix[e], 0.0)
-                m = int(round(span / dt))
-                for i in range(n):
-                    for _ in range(m):
-                        _step(P[e, i], cfg, r_)
-            # the weight: the fix's likelihood, its position tempered by the prediction's spread over
-            # the span (a particle's path is one sample of many that end near the fix)
-            sig_w = math.sqrt(sig * sig + cfg[C_DRIFT] * span)
-            for i in range(n):
-                logw[e, i] += _loglik(P[e, i], z, sig_w, cfg)
-            top = logw[e].max()
-            w = np.exp(logw[e] - top)
-            ess = w.sum() ** 2 / (w * w).sum()
-            out[e, F_ESS] = ess / n
-            if ess < 0.5 * n:
-                _resample(P[e], logw[e], prior, r_)
-            else:
-                for i in range(n):
-                    logw[e, i] -= top
-            _anchor(P[e], z, sig, cfg, r_)
-            t_fix[e] = t_meas
-            Pn[e, :, :] = P[e]
-            m = int(round((t_now[e] - t_fix[e]) / dt))
+                _init_particle(P[e, i], prior, cfg, z, r_)
+                logw[e, i] = 0.0
+            init[e] = True
+        else:
+            span = max(t_meas - t_fix[e], 0.0)
+            m = int(round(span / dt))
             for i in range(n):
                 for _ in range(m):
-                    _step(Pn[e, i], cfg, r_)
-        if init[e]:
-            top = logw[e].max()
-            w = np.exp(logw[e] - top)
-            w /= w.sum()
-            mx = my = sx = sy = mu = mr = rx = ry = 0.0
-            for i in range(n):
-                q = Pn[e, i]
-                cp, sp = math.cos(q[PSI]), math.sin(q[PSI])
-                mx += w[i] * q[X]
-                my += w[i] * q[Y]
-                sx += w[i] * cp
-                sy += w[i] * sp
-                mu += w[i] * q[U]
-                mr += w[i] * q[R]
-                rx += w[i] * (q[X] + cp * cfg[C_PDX] - sp * cfg[C_PDY])
-                ry += w[i] * (q[Y] + sp * cfg[C_PDX] + cp * cfg[C_PDY])
-            out[e, F_VALID] = 1.0
-            out[e, F_X], out[e, F_Y] = mx, my
-            best = Pn[e, np.argmax(w), PSI]  # the heading on the branch of the likeliest particle
-            out[e, F_PSI] = best + math.atan2(math.sin(math.atan2(sy, sx) - best), math.cos(math.atan2(sy, sx) - best))
-            out[e, F_U], out[e, F_R] = mu, mr
-            ex, ey = rx - odom[e, 0], ry - odom[e, 1]
-            out[e, F_RX] = c * ex + s * ey
-            out[e, F_RY] = -s * ex + c * ey
-            out[e, F_AGE] = t_now[e] - t_fix[e]
+                    _step(P[e, i], cfg, r_)
+        # the weight: the fix's likelihood, its position tempered by the prediction's spread over
+        # the span (a particle's path is one sample of many that end near the fix)
+        sig_w = math.sqrt(sig * sig + cfg[C_DRIFT] * span)
+        for i in range(n):
+            logw[e, i] += _loglik(P[e, i], z, sig_w, cfg)
+        top = logw[e].max()
+        w = np.exp(logw[e] - top)
+        ess = w.sum() ** 2 / (w * w).sum()
+        out[e, F_ESS] = ess / n
+        if ess < 0.5 * n:
+            _resample(P[e], logw[e], prior, r_)
         else:
-            for j in range(NF):
-                out[e, j] = 0.0
+            for i in range(n):
+                logw[e, i] -= top
+        _anchor(P[e], z, sig, cfg, r_)
+        t_fix[e] = t_meas
+        Pn[e, :, :] = P[e]
+        m = int(round((t_now[e] - t_fix[e]) / dt))
+        for i in range(n):
+            for _ in range(m):
+                _step(Pn[e, i], cfg, r_)
+    if init[e]:
+        top = logw[e].max()
+        w = np.exp(logw[e] - top)
+        w /= w.sum()
+        mx = my = sx = sy = mu = mr = rx = ry = 0.0
+        for i in range(n):
+            q = Pn[e, i]
+            cp, sp = math.cos(q[PSI]), math.sin(q[PSI])
+            mx += w[i] * q[X]
+            my += w[i] * q[Y]
+            sx += w[i] * cp
+            sy += w[i] * sp
+            mu += w[i] * q[U]
+            mr += w[i] * q[R]
+            rx += w[i] * (q[X] + cp * cfg[C_PDX] - sp * cfg[C_PDY])
+            ry += w[i] * (q[Y] + sp * cfg[C_PDX] + cp * cfg[C_PDY])
+        out[e, F_VALID] = 1.0
+        out[e, F_X], out[e, F_Y] = mx, my
+        best = Pn[e, np.argmax(w), PSI]  # the heading on the branch of the likeliest particle
+        out[e, F_PSI] = best + math.atan2(math.sin(math.atan2(sy, sx) - best), math.cos(math.atan2(sy, sx) - best))
+        out[e, F_U], out[e, F_R] = mu, mr
+        ex, ey = rx - odom[e, 0], ry - odom[e, 1]
+        out[e, F_RX] = c * ex + s * ey
+        out[e, F_RY] = -s * ex + c * ey
+        out[e, F_AGE] = t_now[e] - t_fix[e]
+    else:
+        for j in range(NF):
+            out[e, j] = 0.0
 
+
+
+#: the step, serial and on numba's threads (each env draws from its own generator: the same bits)
+_pf_serial = njit(cache=True)(_pf_chunks)
+_pf_threads = recompiled(_pf_chunks, "_pf_chunks_par", cache=True, parallel=True)
+#: batches from this many envs are filtered on numba's threads (an env's step is ~0.2 ms of work)
+THREADED_MIN_ENVS = 2
 
 def new_state(N: int, n: int) -> dict[str, np.ndarray]:
     """Fresh per-env arrays of :func:`pf_step` for N envs of n particles."""
