@@ -67,22 +67,29 @@ def _wrap(a):
 
 
 @njit(cache=True, inline="always")
+def _arc(psi, r, T):
+    """(rs, sin psi, cos psi, sin p1, cos p1) of a turn at rate r over T: rs is r kept off zero
+    (+-1e-5 rad/s: the arc's formulas divide by it), p1 = psi + rs T."""
+    s0, c0 = math.sin(psi), math.cos(psi)
+    rs = r
+    if abs(r) < 1e-5:
+        rs = 1e-5 if r >= 0 else -1e-5
+    p1 = psi + rs * T
+    return rs, s0, c0, math.sin(p1), math.cos(p1)
+
+
+@njit(cache=True, inline="always")
 def _prop(x, T, turn, out, J):
     """The mean (5,) of state x after T seconds under CV (turn False) or CT, into ``out``, and
     its Jacobian into J (5, 5). Returns (cos, sin) of the new heading out[2] (the values the
     arc needed anyway: bit for bit those of math.cos, math.sin of out[2])."""
     px, py, psi, u, r = x[0], x[1], x[2], x[3], x[4]
-    s0, c0 = math.sin(psi), math.cos(psi)
     for a in range(NX):
         for b in range(NX):
             J[a, b] = 0.0
         J[a, a] = 1.0
     if turn:
-        rs = r
-        if abs(r) < 1e-5:
-            rs = 1e-5 if r >= 0 else -1e-5
-        p1 = psi + rs * T
-        s1, c1 = math.sin(p1), math.cos(p1)
+        rs, s0, c0, s1, c1 = _arc(psi, r, T)
         ds, dc = s1 - s0, c0 - c1
         out[0] = px + u * ds / rs
         out[1] = py + u * dc / rs
@@ -100,6 +107,7 @@ def _prop(x, T, turn, out, J):
             return math.cos(out[2]), math.sin(out[2])
         return c1, s1
     else:
+        s0, c0 = math.sin(psi), math.cos(psi)
         out[0] = px + u * T * c0
         out[1] = py + u * T * s0
         out[2] = psi
@@ -387,18 +395,14 @@ def imm_present(m, P, mu, T, cfg, out_x, with_cov, out_P, w, dpsi):
 def _prop_mean(px, py, psi, u, r, T, turn):
     """:func:`_prop`'s mean in scalars (the same operations: the same bits), without the Jacobian:
     (x, y, psi, u, r, cos psi, sin psi) after T. Scalars only, as :func:`_present_mean`."""
-    s0, c0 = math.sin(psi), math.cos(psi)
     if turn:
-        rs = r
-        if abs(r) < 1e-5:
-            rs = 1e-5 if r >= 0 else -1e-5
-        p1 = psi + rs * T
-        s1, c1 = math.sin(p1), math.cos(p1)
+        rs, s0, c0, s1, c1 = _arc(psi, r, T)
         ds, dc = s1 - s0, c0 - c1
         p2 = psi + r * T
         if rs != r:
             return px + u * ds / rs, py + u * dc / rs, p2, u, r, math.cos(p2), math.sin(p2)
         return px + u * ds / rs, py + u * dc / rs, p2, u, r, c1, s1
+    s0, c0 = math.sin(psi), math.cos(psi)
     return px + u * T * c0, py + u * T * s0, psi, u, 0.0, c0, s0
 
 
