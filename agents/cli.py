@@ -132,7 +132,8 @@ def _seeds(text: str) -> list[int]:
     return out
 
 
-def _key_value(text: str) -> tuple[str, Any]:
+def key_value(text: str) -> tuple[str, Any]:
+    """An argparse type: ``KEY=VALUE`` -> (key, the value read as YAML: ``.inf``, ``1e-3``, ``[1, 2]``)."""
     if "=" not in text:
         raise argparse.ArgumentTypeError(f"{text!r} is not key=value")
     k, v = text.split("=", 1)
@@ -158,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--algo", choices=ALGOS, default="bppo",
                    help="algorithm (bppo: the batched PPO of agents/training/batched_ppo.py on the native vector env)")
     t.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default="AUVFollow-S4-v0", help="env id")
-    t.add_argument("--env-kwarg", dest="env_kwargs", type=_key_value, action="append", default=[],
+    t.add_argument("--env-kwarg", dest="env_kwargs", type=key_value, action="append", default=[],
                    metavar="KEY=VALUE", help="scenario override for gym.make (repeatable), e.g. disturbance=L1")
     t.add_argument("--mode", choices=MODES, default="residual", help="residual on a controller, or from scratch")
     t.add_argument("--controller", choices=ALL_CONTROLLERS, default=DEFAULT_CONTROLLER,
@@ -199,7 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="checkpoint/model .zip to continue (trusted files only: its vecnormalize .pkl is unpickled)")
     t.add_argument("--hyperparams", dest="hyperparams_file", default=None,
                    help="rl-zoo3-format YAML file (None: agents/training/hyperparams/<algo>.yml)")
-    t.add_argument("--hp", dest="hyperparams", type=_key_value, action="append", default=[], metavar="KEY=VALUE",
+    t.add_argument("--hp", dest="hyperparams", type=key_value, action="append", default=[], metavar="KEY=VALUE",
                    help="override a hyperparameter (repeatable), e.g. learning_rate=1e-4")
     t.add_argument("--no-progress", dest="progress_bar", action="store_false", help="no progress output")
     t.add_argument("--no-tensorboard", dest="tensorboard", action="store_false", help="no TensorBoard logs")
@@ -225,7 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("models", nargs="*", help="run directories or model .zip files")
     c.add_argument("--env", dest="env_id", choices=ENV_CHOICES, default=None,
                    help="env id (default: the one the agents were trained on, AUVFollow-S4-v0 without agents)")
-    c.add_argument("--env-kwarg", dest="env_kwargs", type=_key_value, action="append", default=[],
+    c.add_argument("--env-kwarg", dest="env_kwargs", type=key_value, action="append", default=[],
                    metavar="KEY=VALUE", help="scenario override for every policy (repeatable)")
     c.add_argument("--seeds", type=_seeds, default=None,
                    help="test seeds, e.g. 1000-1009 or 1,2 (default: the first 10 published test seeds of the env)")

@@ -2,13 +2,16 @@
 
     python -m experiments.smoothness --tier Easy --seeds 100 \\
         --policies PROPOSED_KF_DOB MPC "PPO scratch=results/benchmark/runs/bppo4-Easy-scratch-s0"
+    python -m experiments.smoothness --tier Hard --env-kwarg thruster_rate=.inf ...   # an ablated tier
 
 For each policy (a controller name, or ``label=run[,run...]`` as ``auv-follow benchmark`` takes
 them) and each of the tier's first ``--seeds`` published test seeds, one episode on the vector
 env (every policy and seed in one batch): per step the commanded force F = clip(a, -1, 1) * F_max
 [N, N, N m]; reported per policy are the mean over episodes of mean |F_u|, mean |dF_u| per step
 (dF_k = F_k - F_{k-1} within an episode), the same for sway and yaw, and the steady-state true
-tracking error (the leaderboard's metric, its mean over the episodes). Writes a Markdown table
+tracking error (the leaderboard's metric, its mean over the episodes). ``--env-kwarg KEY=VALUE``
+(repeatable, the value read as YAML) changes the tier's env for every policy, e.g. an ablation of
+its thrusters (the controllers are then built for the changed task). Writes a Markdown table
 to ``--out`` (default ``results/tmp/smoothness.md``; ``results/smoothness.md`` is the committed
 one, written with the defaults of ``docs/benchmark.md``'s table).
 """
@@ -26,12 +29,15 @@ from tqdm.auto import tqdm
 import auv_follow_env  # noqa: F401  (registers the ids)
 from agents.benchmark.policies import build_policy, parse_policy
 from agents.benchmark.protocol import resolve_tier, tier_test_seeds
+from agents.cli import key_value
 
 
-def measure(policy, env_id: str, seeds: list[int], progress: bool = True) -> dict[str, float]:
-    """Roll ``policy`` (SB3 ``predict`` protocol over a batch) on one episode per seed at once."""
+def measure(policy, env_id: str, seeds: list[int], progress: bool = True,
+            env_kwargs: dict | None = None) -> dict[str, float]:
+    """Roll ``policy`` (SB3 ``predict`` protocol over a batch) on one episode per seed at once
+    (``env_kwargs``: overrides of the env, as ``gym.make`` takes them)."""
     n = len(seeds)
-    venv = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point")
+    venv = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", **(env_kwargs or {}))
     spec = venv.unwrapped.task_spec if hasattr(venv, "unwrapped") else venv.task_spec
     limits = np.asarray(spec.force_limits, dtype=np.float64)
     obs, _ = venv.reset(seed=seeds)
@@ -80,24 +86,34 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tier", default="Easy")
     p.add_argument("--seeds", type=int, default=100, help="the tier's first K published test seeds")
     p.add_argument("--policies", nargs="+", required=True)
+    p.add_argument("--env-kwarg", dest="env_kwargs", action="append", default=[],
+                   metavar="KEY=VALUE", help="an override of the tier's env for every policy (repeatable; YAML value)")
     p.add_argument("--out", default="results/tmp/smoothness.md")
     a = p.parse_args(argv)
     name, env_id = resolve_tier(a.tier)
     seeds = list(tier_test_seeds(name))[: a.seeds]
-    probe = gym.make(env_id)
+    try:
+        kw = dict(key_value(t) for t in a.env_kwargs)
+    except argparse.ArgumentTypeError as exc:
+        p.error(f"--env-kwarg: {exc}")
+    try:
+        probe = gym.make(env_id, **kw)
+    except (TypeError, ValueError) as exc:
+        p.error(f"--env-kwarg {kw} is refused by {env_id}: {exc}")
     task_spec, width = probe.unwrapped.task_spec, int(probe.observation_space.shape[0])
     probe.close()
     rows = []
     for item in a.policies:
         spec = parse_policy(item)
         runs = list(spec.runs) or [None]
-        per_run = [measure(build_policy(spec, r, env_id, task_spec, width), env_id, seeds) for r in runs]
+        per_run = [measure(build_policy(spec, r, env_id, task_spec, width), env_id, seeds, env_kwargs=kw) for r in runs]
         row = {k: float(np.mean([m[k] for m in per_run])) for k in per_run[0]}
         rows.append((spec.label, len(runs), row))
         print(f"{spec.label}: steady error {row['steady_mean']:.4f} m, |dF_u| {row['dF_u']:.2f} N/step, "
               f"|F_u| {row['F_u']:.2f} N, |r| {row['yaw_rate']:.3f} rad/s", file=sys.stderr)
-    lines = [f"# Thruster activity on {name} ({env_id})", "",
-             f"Reproduce: `python -m experiments.smoothness --tier {name} --seeds {a.seeds} --policies "
+    changed = "".join(f" --env-kwarg {t}" for t in a.env_kwargs)
+    lines = [f"# Thruster activity on {name} ({env_id}{', changed: ' + str(kw) if kw else ''})", "",
+             f"Reproduce: `python -m experiments.smoothness --tier {name} --seeds {a.seeds}{changed} --policies "
              + " ".join(f"'{x}'" for x in a.policies) + "`", "",
              f"The tier's first {a.seeds} published test seeds, one deterministic episode each; a learned method's "
              "numbers are the mean over its runs. |dF| = mean over steps of |F_k - F_(k-1)| (commanded force, "

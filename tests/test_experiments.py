@@ -336,3 +336,38 @@ def test_learning_curve_of_a_resumed_run_starts_with_its_parent(tmp_path):
     assert with_parent_curve(tmp_path / "ft-s0", {"resume_from": "/x/missing/model.zip"}, ft) is ft
     assert method_name("bppo-Easy-scratch-priv-s12") == "bppo-Easy-scratch-priv"
     assert method_name("bppo-Easy-s0-scratch") == "bppo-Easy-s0-scratch"
+
+
+def test_smoothness_env_kwarg_changes_the_env_and_is_recorded(tmp_path, capsys):
+    """experiments.smoothness --env-kwarg: the value is read as YAML (.inf is infinity), the env of
+    every policy is the changed one (its controllers built for the changed task), the report says
+    so and its Reproduce line repeats the option; a value the env refuses is a usage error naming
+    the argument."""
+    import pytest
+
+    from experiments import smoothness
+
+    out = tmp_path / "s.md"
+    smoothness.main(["--tier", "Hard", "--seeds", "2", "--env-kwarg", "thruster_rate=.inf",
+                     "--policies", "PROPOSED_KF_DOB", "--out", str(out)])
+    text = out.read_text()
+    assert "changed: {'thruster_rate': inf}" in text
+    assert "--env-kwarg thruster_rate=.inf --policies" in text
+    # the changed env is the one rolled: thrusters ten times slower move the same controller's error
+    import gymnasium as gym
+
+    from controllers import make_controller
+
+    seeds = [3000000, 3000001]
+    base = smoothness.measure(make_controller("PROPOSED_KF_DOB", gym.make("AUVFollow-Hard-v1").unwrapped.task_spec),
+                              "AUVFollow-Hard-v1", seeds, progress=False)
+    slow_spec = gym.make("AUVFollow-Hard-v1", thruster_tc_s=3.0).unwrapped.task_spec
+    assert slow_spec.thruster_tc_s == 3.0
+    slow = smoothness.measure(make_controller("PROPOSED_KF_DOB", slow_spec), "AUVFollow-Hard-v1", seeds,
+                              progress=False, env_kwargs={"thruster_tc_s": 3.0})
+    assert slow["steady_mean"] > base["steady_mean"] * 1.05
+    with pytest.raises(SystemExit):
+        smoothness.main(["--tier", "Hard", "--seeds", "2", "--env-kwarg", "thruster_rate=fast",
+                         "--policies", "PROPOSED_KF_DOB", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert "--env-kwarg" in err and "thruster_rate" in err and "fast" in err
