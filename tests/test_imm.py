@@ -240,7 +240,7 @@ def test_the_model_aware_controller_runs_on_leader_tiers_only_and_batches_do_not
         obs, *_ = venv.step(a)
 
 
-def test_threaded_step_equals_the_serial_step_bit_for_bit(monkeypatch):
+def test_threaded_step_equals_the_serial_step_bit_for_bit(monkeypatch, count_calls):
     """From THREADED_MIN_ENVS envs on, imm_step splits the batch over numba's threads; every env
     runs the same operations as in the serial loop, so estimates and filter states are the same
     bits (one process), along real Leader-Hard episodes with fixes, gating and restarts."""
@@ -259,21 +259,16 @@ def test_threaded_step_equals_the_serial_step_bit_for_bit(monkeypatch):
     threaded, serial = TargetEstimator(spec, driver.estimator.config), TargetEstimator(spec, driver.estimator.config)
     obs, _ = venv.reset(seed=list(range(700, 700 + n)))
     start = np.ones(n, dtype=bool)
-    calls = {"threads": 0}
-    real = _imm._imm_threads
-
-    def counting(*args):
-        calls["threads"] += 1
-        return real(*args)
-
+    calls = count_calls(_imm, "_imm_threads")
+    mine = 0  # the threaded estimator's calls (the driver's own filter calls the kernel too)
     for k in range(80):
         o = np.asarray(obs, dtype=np.float64)
-        monkeypatch.setattr(_imm, "_imm_threads", counting)
+        before = calls["calls"]
         a = threaded.step(o, start, with_cov=k % 2 == 0)
+        mine += calls["calls"] - before
         monkeypatch.setattr(_imm, "THREADED_MIN_ENVS", 10**9)  # the serial loop
         b = serial.step(o, start, with_cov=k % 2 == 0)
         monkeypatch.setattr(_imm, "THREADED_MIN_ENVS", n - 5)
-        monkeypatch.setattr(_imm, "_imm_threads", real)
         for f in ("rel_x", "rel_y", "rel_psi", "u", "r", "age", "valid"):
             assert np.array_equal(getattr(a, f), getattr(b, f)), (f, k)
         if k % 2 == 0:
@@ -285,7 +280,7 @@ def test_threaded_step_equals_the_serial_step_bit_for_bit(monkeypatch):
         assert np.array_equal(getattr(threaded._s, f), getattr(serial._s, f)), f
     import numba
 
-    assert calls["threads"] == (80 if numba.get_num_threads() > 1 else 0)
+    assert mine == (80 if numba.get_num_threads() > 1 else 0)
 
 
 def test_present_estimate_without_covariance_equals_the_covariance_path_bit_for_bit():
@@ -327,7 +322,7 @@ def test_present_estimate_without_covariance_equals_the_covariance_path_bit_for_
         venv.close()
 
 
-def test_particle_filter_threaded_step_equals_the_serial_step_bit_for_bit(monkeypatch):
+def test_particle_filter_threaded_step_equals_the_serial_step_bit_for_bit(monkeypatch, count_calls):
     """The model-aware particle filter splits a batch of envs over numba's threads; each env draws
     from its own generator, so the estimates and the particles are the same bits as the serial
     loop's, along real Leader-Hard episodes (fixes, resampling)."""
@@ -348,14 +343,7 @@ def test_particle_filter_threaded_step_equals_the_serial_step_bit_for_bit(monkey
     obs, _ = venv.reset(seed=[31, 32, 33])
     start = np.ones(n, dtype=bool)
     keys = ("t_now", "odom", "vel", "init", "t_fix", "P", "Pn", "logw", "rs")
-    calls = {"threads": 0}
-    real = _leader_pf._pf_threads
-
-    def counting(*args):
-        calls["threads"] += 1
-        return real(*args)
-
-    monkeypatch.setattr(_leader_pf, "_pf_threads", counting)
+    calls = count_calls(_leader_pf, "_pf_threads")
     for _ in range(240):
         o = np.ascontiguousarray(obs, dtype=np.float64)
         _leader_pf.pf_step(o, start, cfg, prior, *(threaded[k] for k in keys), out_t)
@@ -371,4 +359,4 @@ def test_particle_filter_threaded_step_equals_the_serial_step_bit_for_bit(monkey
     assert out_t[:, _leader_pf.F_VALID].all()  # every env had fixes
     import numba
 
-    assert calls["threads"] == (240 if numba.get_num_threads() > 1 else 0)
+    assert calls["calls"] == (240 if numba.get_num_threads() > 1 else 0)
