@@ -483,28 +483,24 @@ class _Peek:
     estimate: TargetEstimate
 
 
-def _copy_state(st, spare):
-    """A copy of the filter state ``st``: written into ``spare`` (a state the estimator no longer
-    uses) when it has the same kind and shapes, which spares the allocation (and, for the large
-    arrays, the fresh pages' faults) of every peek; else a new copy."""
-    if spare is None or type(spare) is not type(st) or spare is st:
-        return st.copy()
-    for f in fields(st):
-        dst, src = getattr(spare, f.name), getattr(st, f.name)
-        if dst.shape != src.shape or dst.dtype != src.dtype:
-            return st.copy()
-    for f in fields(st):
-        np.copyto(getattr(spare, f.name), getattr(st, f.name))
-    return spare
-
-
 def _blank_like(st, spare):
-    """``spare`` if it is a state of the same kind and shapes as ``st`` (to be overwritten), else a
-    new uninitialised one."""
+    """``spare`` if it is a state of the same kind, shapes and dtypes as ``st`` (to be
+    overwritten), else a new uninitialised one."""
     if spare is not None and type(spare) is type(st) and spare is not st and all(
-            getattr(spare, f.name).shape == getattr(st, f.name).shape for f in fields(st)):
+            (a := getattr(spare, f.name)).shape == (b := getattr(st, f.name)).shape and a.dtype == b.dtype
+            for f in fields(st)):
         return spare
     return type(st)(*(np.empty_like(getattr(st, f.name)) for f in fields(st)))
+
+
+def _copy_state(st, spare):
+    """A copy of the filter state ``st``, written into ``spare`` (a state the estimator no longer
+    uses) when it fits (:func:`_blank_like`), which spares the allocation (and, for the large
+    arrays, the fresh pages' faults) of every peek."""
+    out = _blank_like(st, spare)
+    for f in fields(st):
+        np.copyto(getattr(out, f.name), getattr(st, f.name))
+    return out
 
 
 def _state_arrays(st) -> tuple[np.ndarray, ...]:
