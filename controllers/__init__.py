@@ -49,8 +49,11 @@ ALL_CONTROLLERS: tuple[str, ...] = CONTROLLERS + EXTENDED_CONTROLLERS
 #:
 #: * ``PROPOSED_PF_DOB``: PROPOSED_KF_DOB with the *model-aware* particle filter
 #:   (:mod:`controllers._leader_pf`: the tier's modes, durations, survey pattern, lags, outlier fixes
-#:   and its published ranges as the prior) in place of the linear filter.
-MODEL_AWARE_CONTROLLERS: tuple[str, ...] = ("PROPOSED_PF_DOB",)
+#:   and its published ranges as the prior) in place of the linear filter;
+#: * ``PROPOSED_LIMM_DOB``: the same law with the *model-aware* IMM (:mod:`controllers._leader_imm`:
+#:   the tier's mode set with its rates, speeds, mean durations and shares), fast enough for the
+#:   control loop.
+MODEL_AWARE_CONTROLLERS: tuple[str, ...] = ("PROPOSED_PF_DOB", "PROPOSED_LIMM_DOB")
 #: time constant of the disturbance observer's low-pass filter [s] (ours; tuned on seeds 100-119)
 DOB_TIME_CONSTANT = 0.5
 #: outer-loop gain K_p [1/s] of PROPOSED_KF and PROPOSED_KF_DOB on the v1 tiers (ours): chosen
@@ -121,10 +124,11 @@ def make_controller(name: str, spec: TaskSpec, gains: Gains | None = None) -> Sc
         gains = gains if gains is not None else default_gains(name, spec)
         return HierarchicalController(spec, prediction=True, robust=True, gains=gains, name=name,
                                       estimator=TargetEstimator(spec, cfg), disturbance_observer=dob)
-    if name == "PROPOSED_PF_DOB":  # (the estimator refuses a task that is not a Leader tier's)
+    if name in MODEL_AWARE_CONTROLLERS:  # (the estimator refuses a task that is not a Leader tier's)
         import dataclasses
 
-        cfg = dataclasses.replace(EstimatorConfig.for_spec(spec), model="LEADER_PF")
+        model = "LEADER_PF" if name == "PROPOSED_PF_DOB" else "LEADER_IMM"
+        cfg = dataclasses.replace(EstimatorConfig.for_spec(spec), model=model)
         dob = DisturbanceObserver(spec.nominal, spec.dt, spec.force_limits, DOB_TIME_CONSTANT)
         gains = gains if gains is not None else default_gains("PROPOSED_KF_DOB", spec)
         return HierarchicalController(spec, prediction=True, robust=True, gains=gains, name=name,

@@ -74,13 +74,13 @@ import numpy as np
 
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1, decode
 from auv_follow_env.params import TaskSpec
-from controllers import _imm, _leader_pf, _ou0
+from controllers import _imm, _leader_imm, _leader_pf, _ou0
 from controllers.base import as_batch, as_mask
 
 __all__ = ["EstimatorConfig", "TargetEstimate", "TargetEstimator", "MODELS", "propagate_mean"]
 
 #: model name -> state dimension
-MODELS: dict[str, int] = {"CV": 6, "CT": 6, "CTA": 8, "OU": 7, "OU0": 6, "IMM": 5, "LEADER_PF": 5}
+MODELS: dict[str, int] = {"CV": 6, "CT": 6, "CTA": 8, "OU": 7, "OU0": 6, "IMM": 5, "LEADER_PF": 5, "LEADER_IMM": 5}
 
 #: the model used on the v1 tiers: their target's own (OU speed and turn rate) with its structure
 #: (no sway), in numba (:mod:`controllers._ou0`)
@@ -443,6 +443,41 @@ class _IMMState:
 
 
 @dataclass
+class _LIMMState:
+    """The model-aware IMM kernel's per-env arrays (:func:`controllers._leader_imm.limm_step`)."""
+
+    t_now: np.ndarray  # (N,) [s]
+    odom: np.ndarray  # (N, 2) [m]
+    vel: np.ndarray  # (N, 2) [m/s]
+    psi_f: np.ndarray  # (N,) [rad]
+    init: np.ndarray  # (N,) bool
+    t_fix: np.ndarray  # (N,) [s]
+    m: np.ndarray  # (N, K, 4) the models' means at t_fix
+    P: np.ndarray  # (N, K, 4, 4)
+    mu: np.ndarray  # (N, K) mode probabilities at t_fix
+    ng: np.ndarray  # (N, 1) int64: gated fixes in a row
+    om: np.ndarray  # (N, 2) [rad/s] the env's turn and U-turn rates
+    pm: np.ndarray  # (N, K, 4) the models' means now
+    pcs: np.ndarray  # (N, K, 2) cos, sin of their headings now
+    pc: np.ndarray  # (N, K) mode probabilities now
+
+    @classmethod
+    def fresh(cls, n: int) -> _LIMMState:
+        k, nx = _leader_imm.K, _leader_imm.NX
+        return cls(np.zeros(n), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n), np.zeros(n, dtype=bool),
+                   np.zeros(n), np.zeros((n, k, nx)), np.tile(np.eye(nx), (n, k, 1, 1)), np.zeros((n, k)),
+                   np.zeros((n, 1), dtype=np.int64), np.zeros((n, 2)), np.zeros((n, k, nx)), np.zeros((n, k, 2)),
+                   np.zeros((n, k)))
+
+    @property
+    def x(self) -> np.ndarray:  # (the batch size, as the other states' x)
+        return self.odom
+
+    def copy(self) -> _LIMMState:
+        return _LIMMState(*(getattr(self, f.name).copy() for f in fields(self)))
+
+
+@dataclass
 class _PFState:
     """The particle filter's per-env arrays (:func:`controllers._leader_pf.pf_step`)."""
 
@@ -526,6 +561,8 @@ def _kernel_estimate(out: np.ndarray, state: np.ndarray, cov: np.ndarray | None,
                           cov=cov, age=out[:, k.E_AGE])
 
 
+#: the filters in numba (their state a dataclass of arrays, their input the raw observation rows)
+_NUMBA_MODELS = ("OU0", "IMM", "LEADER_PF", "LEADER_IMM")
 #: the IMM's present state (x, y, psi, u, r) among the kernel's output columns (a view: E_X .. E_R)
 _IMM_STATE_COLUMNS = slice(_ou0.E_X, _ou0.E_R + 1)
 assert [_ou0.E_X, _ou0.E_Y, _ou0.E_PSI, _ou0.E_U, _ou0.E_R] == list(range(_ou0.E_X, _ou0.E_R + 1))
@@ -555,13 +592,16 @@ class TargetEstimator:
         self._cfg = (self._kernel_config() if self.model == "OU0" else
                      self._imm_config() if self.model == "IMM" else None)
         self._prior = None
-        if self.model == "LEADER_PF":
+        if self.model in ("LEADER_PF", "LEADER_IMM"):
             tier = getattr(spec, "tier", None)
             from auv_follow_env.tiers import LEADER_TIERS
 
             if tier not in LEADER_TIERS or spec.layout != "v1":
-                raise ValueError(f"model='LEADER_PF' needs a Leader tier's task (it knows the tier's generator); got "
+                raise ValueError(f"model={self.model!r} needs a Leader tier's task (it knows the tier's modes); got "
                                  f"tier={tier!r}: valid tiers are {list(LEADER_TIERS)}")
+        if self.model == "LEADER_IMM":
+            self._cfg = _leader_imm.limm_config(spec, tier)
+        if self.model == "LEADER_PF":
             self._cfg, self._prior = _leader_pf.pf_config(spec, tier)
             self._cfg[_leader_pf.C_TEMPER] = self.config.pf_temper
             self._cfg[_leader_pf.C_DRIFT] = self.config.pf_drift
@@ -619,6 +659,11 @@ class TargetEstimator:
         state = out[:, _IMM_STATE_COLUMNS]
         return _kernel_estimate(out, state, cov if with_cov else None, zeroed=True)
 
+    def _run_limm(self, st: _LIMMState, obs: np.ndarray, mask: np.ndarray) -> TargetEstimate:
+        out = np.empty((obs.shape[0], _ou0.NE))
+        _leader_imm.limm_step(obs, mask, self._cfg, *_state_arrays(st), out)
+        return _kernel_estimate(out, out[:, _IMM_STATE_COLUMNS], None, zeroed=True)
+
     def _run_pf(self, st: _PFState, obs: np.ndarray, mask: np.ndarray) -> TargetEstimate:
         n = obs.shape[0]
         out = np.empty((n, _leader_pf.NF))
@@ -655,6 +700,8 @@ class TargetEstimator:
             return _IMMState.fresh(n)
         if self.model == "LEADER_PF":
             return _PFState.fresh(n, self.config.pf_particles)
+        if self.model == "LEADER_IMM":
+            return _LIMMState.fresh(n)
         d = self.config.dim
         return _FilterState(np.zeros(n), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n), np.zeros(n, dtype=bool),
                             np.zeros(n), np.zeros((n, d)), np.tile(np.eye(d), (n, 1, 1)))
@@ -758,7 +805,7 @@ class TargetEstimator:
         if self._s is None or self._s.x.shape[0] != n:
             mask = np.ones(n, dtype=bool)
             self._s = self._fresh(n)
-        return obs, (None if self.model in ("OU0", "IMM", "LEADER_PF") else decode(obs)), mask
+        return obs, (None if self.model in _NUMBA_MODELS else decode(obs)), mask
 
     def step(self, observation: np.ndarray, reset_mask: np.ndarray | None = None, *, commit: bool = True,
              with_cov: bool = True, copy: bool = True) -> TargetEstimate:
@@ -785,7 +832,7 @@ class TargetEstimator:
             ValueError: observation of a wrong shape, or a reset_mask of the wrong length.
         """
         obs, o, mask = self._checked(observation, reset_mask)
-        if self.model in ("OU0", "IMM", "LEADER_PF"):
+        if self.model in _NUMBA_MODELS:
             obs = np.ascontiguousarray(obs, dtype=np.float64)
         if not commit:
             if self.model == "IMM":  # the peek's copy of the state is made inside the kernel
@@ -793,7 +840,7 @@ class TargetEstimator:
                 self._spare = None
                 est = self._run_imm(st, obs, mask, with_cov, src=self._s)
             else:
-                st = _copy_state(self._s, self._spare) if self.model in ("OU0", "LEADER_PF") else self._s.copy()
+                st = _copy_state(self._s, self._spare) if self.model in _NUMBA_MODELS else self._s.copy()
                 self._spare = None
                 est = self._run(st, obs, o, mask, with_cov)
             self._peek = None
@@ -815,6 +862,8 @@ class TargetEstimator:
             return self._run_imm(st, obs, mask, with_cov)
         if self.model == "LEADER_PF":
             return self._run_pf(st, obs, mask)
+        if self.model == "LEADER_IMM":
+            return self._run_limm(st, obs, mask)
         self._advance(st, o, mask)
         return self._present(st, o, with_cov)
 
@@ -862,6 +911,9 @@ class TargetEstimator:
         elif self.model == "IMM":  # the mixture's prediction from the last fix
             T = np.where(st.init, st.t_now - st.t_fix, 0.0)[:, None] + tk[None, :]
             X = _imm.imm_trajectory(st.m, st.P, st.mu, st.init, np.ascontiguousarray(T), self._cfg)
+        elif self.model == "LEADER_IMM":  # the models' mixture from the last fix
+            T = np.where(st.init, st.t_now - st.t_fix, 0.0)[:, None] + tk[None, :]
+            X = _leader_imm.limm_trajectory(st.m, st.mu, st.om, st.init, np.ascontiguousarray(T), self._cfg)
         else:
             T = np.where(st.init, st.t_now - st.t_fix, 0.0)[:, None] + tk[None, :]
             X = propagate_mean(self.model, np.repeat(st.x[:, None, :], K, axis=1), T, self._taus)  # (N, K, n)

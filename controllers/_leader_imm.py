@@ -1,0 +1,723 @@
+"""Numba kernel of the ``LEADER_IMM`` target filter (:mod:`controllers.estimator`): a *model-aware*
+estimator of the Leader tiers that is cheap enough for the control loop. An interacting multiple
+model filter (Blom and Bar-Shalom, 1988) over the tier's own mode set (docs/tiers.md, "Leader
+tiers"), with the tier's published ranges, mean durations and shares and the generator's lags;
+the particle filter (:mod:`controllers._leader_pf`) is the model-aware reference that knows the
+whole generator (durations' shapes, the survey's legs).
+
+Models (index: mode, turn-rate command, speed):
+
+====  ===============  ==============  =====================================================
+0     cruise / leg     0               held (a random walk)
+1, 2  turn left/right  +-w_t           held
+3, 4  U-turn l/r       +-w_u           held  (only if the tier has surveys)
+5     loiter           0               lags toward the tier's loiter speed
+6     sprint           0               lags toward the tier's sprint speed (both: 2 mode sets)
+====  ===============  ==============  =====================================================
+
+State per model (5): ``x, y, psi`` (odometry frame [m, m, rad]), ``u`` (surge [m/s]) and ``r``
+(turn rate [rad/s]). As in the generator, the turn rate lags toward the model's command (time
+constant ``leader_rate_lag_s``) and the loiter and sprint speeds toward theirs
+(``leader_speed_lag_s``); heading, speed and rate move in closed form, the position by
+Gauss-Legendre quadrature. The commands w_t, w_u start at the middle of the tier's ranges and
+adapt per env to the fixes' measured turn rate while a turn model holds the probability (clipped
+to the range: each episode draws its rates from it). Process noise: white noise on the speed
+(``q_u``), the turn rate (``q_r``) and the heading (``q_h``), in closed form along the course.
+
+Switches: the semi-Markov modes as a continuous-time Markov chain (a mode leaves at the rate
+1 / its mean duration, times ``sojourn_scale``; every mode returns to cruise, cruise leaves to the
+others in the generator's shares, surveys and wandering weighted by the survey share); its
+transition matrix over a span is exp(G T), from the generator matrix's eigen-decomposition. The
+position is gated as in the generic IMM (:mod:`controllers._imm`: 99.9 % chi-square for every
+model; two gated fixes in a row restart the filter).
+
+The present estimate: at a fix the models' means are predicted to now and the mode probabilities
+carried over the same span; between fixes both advance by one control step (each model by a
+constant-rate arc over the step, in a few multiplications; the chain by its one-step matrix), so
+the control loop pays little per step. Out-of-order fixes: the envs never deliver one (the receiver
+keeps the newest packet); :func:`limm_filter_fixes` takes fixes in arrival order and handles them
+by retrodiction (re-running from the snapshot before the fix), as the generic IMM.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+from auv_follow_env.dynamics import recompiled
+from controllers._imm import GATE_POS, _solve_sym, _wrap
+from controllers._ou0 import (
+    E_AGE,
+    E_PSI,
+    E_R,
+    E_RPSI,
+    E_RX,
+    E_RY,
+    E_U,
+    E_VALID,
+    E_X,
+    E_Y,
+    NE,
+    fix_measurement,
+    fix_timing,
+    fix_variances,
+    odometry_step,
+)
+
+K = 7  #: models
+NX = 5  #: state per model (x, y, psi, u, r)
+# config vector (float64) indices: scalars, then per model its exit rate [1/s], its stationary
+# share (0: the model is not in this tier's mode set) and cruise's share of switches into it
+C_DT, C_TAU, C_V1 = 0, 1, 2
+C_SPOS, C_SPM, C_SPSI, C_SVEL, C_SR = 3, 4, 5, 6, 7
+C_QU, C_QH, C_GATE, C_TU, C_SRATE = 8, 9, 10, 11, 12
+C_VL, C_VS, C_WT_LO, C_WT_HI, C_WU_LO, C_WU_HI, C_ADAPT, C_TR = 13, 14, 15, 16, 17, 18, 19, 20
+C_QR = 21
+C_LAM, C_PI, C_SPLIT = 22, 22 + K, 22 + 2 * K
+# the chain's transition matrix over T is V diag(exp(D T)) W (eigen-decomposition of its generator),
+# over one control step it is PDT (K, K), all row-major
+C_D, C_V, C_W, C_PDT = 22 + 3 * K, 22 + 4 * K, 22 + 4 * K + K * K, 22 + 4 * K + 2 * K * K
+NC = 22 + 4 * K + 3 * K * K
+NQ = 6  #: quadrature nodes of a model's motion over a span
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(NQ)  #: Gauss-Legendre nodes, weights on [-1, 1]
+CRUISE, TURN_L, TURN_R, UTURN_L, UTURN_R, LOITER, SPRINT = range(K)
+
+
+def limm_config(spec, tier: str, *, q_u: float = 0.001, q_h: float = 0.01, q_r: float = 0.0001, s_rate: float = 0.03,
+                adapt: float = 0.3, sojourn_scale: float = 0.25, gate: bool = True) -> np.ndarray:
+    """The config vector of a Leader tier from its published table (:data:`auv_follow_env.tiers.LEADER_TIERS`):
+    the mode set, the ranges' midpoints (speeds, rates, mean durations, leg length), the survey
+    share, the speed lag, and the fix noise; ``q_u``, ``q_h``, ``s_rate`` (std of a mode's turn
+    rate about its model's [rad/s]), ``adapt`` (gain of the rates' adaptation) and
+    ``sojourn_scale`` (the chain's switch rates times this: the generator's Gamma(4) durations end
+    later than a Markov chain's exponential ones at the same mean) are ours."""
+    from auv_follow_env.tiers import LEADER_TIERS
+
+    t = LEADER_TIERS[tier]
+    fields = {**t.fixed, **t.ranges}
+
+    def rng(name: str, default: float) -> tuple[float, float]:
+        v = fields.get(name, default)
+        return (float(v[0]), float(v[1])) if isinstance(v, (tuple, list)) else (float(v), float(v))
+
+    def mid(name: str, default: float) -> float:
+        lo, hi = rng(name, default)
+        return 0.5 * (lo + hi)
+
+    c = np.zeros(NC)
+    c[C_DT], c[C_TAU], c[C_V1] = spec.dt, spec.delay_s, 1.0
+    c[C_SPOS] = max(mid("fix_sigma_m", 0.0), 1e-3)
+    c[C_SPM] = mid("fix_sigma_per_m", 0.0)
+    c[C_SPSI] = max(mid("heading_sigma_rad", 0.0), 1e-3)
+    c[C_SVEL] = max(mid("velocity_sigma_mps", 0.0), 1e-3)
+    c[C_SR] = max(mid("yaw_rate_sigma_radps", 0.0), 1e-4)
+    c[C_QU], c[C_QH], c[C_QR], c[C_GATE], c[C_SRATE], c[C_ADAPT] = q_u, q_h, q_r, float(gate), s_rate, adapt
+    c[C_TU], c[C_TR] = mid("leader_speed_lag_s", 2.0), mid("leader_rate_lag_s", 1.0)
+    c[C_VL], c[C_VS] = mid("leader_loiter_speed", 0.1), mid("leader_sprint_speed", 0.9)
+    c[C_WT_LO], c[C_WT_HI] = rng("leader_turn_rate", 0.15)
+    c[C_WU_LO], c[C_WU_HI] = rng("leader_uturn_rate", 0.25)
+    share = mid("leader_survey_share", 0.0)
+    speed_modes = mid("leader_modes", 1.0) >= 2
+    mc, mt = mid("leader_cruise_mean_s", 10.0), mid("leader_turn_mean_s", 6.0)
+    ml, ms = mid("leader_loiter_mean_s", 8.0), mid("leader_sprint_mean_s", 5.0)
+    t_leg = mid("leader_leg_m", 10.0) / mid("leader_cruise_speed", 0.5)
+    t_u = math.pi / mid("leader_uturn_rate", 0.25)
+    # wander: cruise's exits (the generator's shares) and each mode's mean duration
+    p_turn = 0.3 if speed_modes else 0.5
+    wander = {TURN_L: (p_turn, mt), TURN_R: (p_turn, mt)}
+    if speed_modes:
+        wander.update({LOITER: (0.2, ml), SPRINT: (0.2, ms)})
+    survey = {UTURN_L: (0.5, t_u), UTURN_R: (0.5, t_u)} if share > 0 else {}
+    # exits from cruise per second: (1 - share) / mc to the wander modes, share / t_leg to the U-turns
+    out_w, out_s = (1.0 - share) / mc, share / t_leg
+    lam0 = (out_w + out_s) * sojourn_scale
+    c[C_LAM + CRUISE] = lam0
+    G = np.zeros((K, K))
+    G[CRUISE, CRUISE] = -lam0
+    for group, out in ((wander, out_w), (survey, out_s)):
+        for j, (p, dur) in group.items():
+            c[C_LAM + j] = sojourn_scale / dur
+            c[C_SPLIT + j] = out * p / (out_w + out_s)
+            G[CRUISE, j] = lam0 * c[C_SPLIT + j]
+            G[j, j] = -c[C_LAM + j]
+            G[j, CRUISE] = c[C_LAM + j]
+    # the chain's stationary shares: pi_j lam_j = pi_0 lam_0 split_j (every mode returns to cruise)
+    act = [CRUISE] + [j for j in range(1, K) if c[C_SPLIT + j] > 0]
+    pi = np.array([1.0] + [lam0 * c[C_SPLIT + j] / c[C_LAM + j] for j in act[1:]])
+    pi /= pi.sum()
+    c[[C_PI + j for j in act]] = pi
+    # the chain is reversible (a star): D^1/2 G D^-1/2 is symmetric, its eigenbasis gives exp(G T)
+    Ga = G[np.ix_(act, act)]
+    h = np.sqrt(pi)
+    d, Q = np.linalg.eigh(0.5 * ((h[:, None] * Ga / h[None, :]) + (h[:, None] * Ga / h[None, :]).T))
+    V, W = np.eye(K), np.eye(K)
+    D = np.zeros(K)
+    V[np.ix_(act, act)] = Q / h[:, None]
+    W[np.ix_(act, act)] = Q.T * h[None, :]
+    for a, j in enumerate(act):
+        D[j] = d[a]
+    inactive = [j for j in range(K) if j not in act]
+    V[np.ix_(act, inactive)] = 0.0  # (the inactive modes: probability 0, kept there)
+    c[C_D:C_D + K] = D
+    c[C_V:C_V + K * K] = V.ravel()
+    c[C_W:C_W + K * K] = W.ravel()
+    c[C_PDT:C_PDT + K * K] = _transition_matrix(c, spec.dt).ravel()
+    return c
+
+
+@njit(cache=True, inline="always")
+def _rate(j, wt, wu):
+    """Model j's turn rate [rad/s] given the env's turn and U-turn rates."""
+    if j == TURN_L:
+        return wt
+    if j == TURN_R:
+        return -wt
+    if j == UTURN_L:
+        return wu
+    if j == UTURN_R:
+        return -wu
+    return 0.0
+
+
+@njit(cache=True, inline="always")
+def _ucmd(j, cfg):
+    """Model j's speed command [m/s] (-1: the speed is held)."""
+    if j == LOITER:
+        return cfg[C_VL]
+    if j == SPRINT:
+        return cfg[C_VS]
+    return -1.0
+
+
+@njit(cache=True)
+def _transition(T, cfg, Pi):
+    """The chain's transition matrix over T into Pi (K, K): Pi[i, k] = P(mode k at T | i at 0) =
+    (V diag(exp(D T)) W)[i, k]."""
+    e = np.empty(K)
+    for k in range(K):
+        e[k] = math.exp(cfg[C_D + k] * T)
+    for i in range(K):
+        for k in range(K):
+            acc = 0.0
+            for a in range(K):
+                acc += cfg[C_V + i * K + a] * e[a] * cfg[C_W + a * K + k]
+            Pi[i, k] = max(acc, 0.0)
+
+
+def _transition_matrix(cfg, T):
+    Pi = np.empty((K, K))
+    _transition(T, cfg, Pi)
+    return Pi
+
+
+@njit(cache=True)
+def _nodes(T, cfg, tab):
+    """The quadrature table of a span T, shared by the models, into tab (NQ + 1, 4): per node its
+    time, weight, heading lag g(t) = tr (1 - exp(-t / tr)) and speed decay exp(-t / tu); the last
+    row exp(-T / tr), g(T), exp(-T / tu)."""
+    tr, tu = cfg[C_TR], cfg[C_TU]
+    for q in range(NQ):
+        t = 0.5 * T * (1.0 + _GL_X[q])
+        tab[q, 0] = t
+        tab[q, 1] = 0.5 * T * _GL_W[q]
+        tab[q, 2] = tr * (1.0 - math.exp(-t / tr))
+        tab[q, 3] = math.exp(-t / tu)
+    er = math.exp(-T / tr)
+    tab[NQ, 0] = er
+    tab[NQ, 1] = tr * (1.0 - er)
+    tab[NQ, 2] = math.exp(-T / tu)
+
+
+@njit(cache=True)
+def _prop(x, T, rc, uc, tab, out, J, want_J):
+    """Mean (5,) of model state x after T (:func:`_nodes`' table ``tab`` of T), the turn rate
+    lagging toward the model's rc, the speed held (uc < 0) or lagging toward uc, into ``out``;
+    with ``want_J`` its Jacobian into J (5, 5). Heading, speed and rate in closed form, the
+    position by Gauss-Legendre quadrature (NQ nodes) of u(t) (cos, sin) psi(t)."""
+    px, py, psi, u, r = x[0], x[1], x[2], x[3], x[4]
+    sx = sy = dxp = dyp = dxu = dyu = dxr = dyr = 0.0
+    for q in range(NQ):
+        t, w, g = tab[q, 0], tab[q, 1], tab[q, 2]
+        ph = psi + rc * t + (r - rc) * g
+        if uc >= 0.0:
+            h = tab[q, 3]
+            ut = uc + (u - uc) * h
+        else:
+            h = 1.0
+            ut = u
+        cq, sq = math.cos(ph), math.sin(ph)
+        sx += w * ut * cq
+        sy += w * ut * sq
+        if want_J:
+            dxp -= w * ut * sq
+            dyp += w * ut * cq
+            dxu += w * h * cq
+            dyu += w * h * sq
+            dxr -= w * ut * sq * g
+            dyr += w * ut * cq * g
+    er, gT, eu = tab[NQ, 0], tab[NQ, 1], tab[NQ, 2]
+    out[0] = px + sx
+    out[1] = py + sy
+    out[2] = psi + rc * T + (r - rc) * gT
+    out[3] = uc + (u - uc) * eu if uc >= 0.0 else u
+    out[4] = rc + (r - rc) * er
+    if want_J:
+        for a in range(NX):
+            for b in range(NX):
+                J[a, b] = 0.0
+            J[a, a] = 1.0
+        J[0, 2], J[0, 3], J[0, 4] = dxp, dxu, dxr
+        J[1, 2], J[1, 3], J[1, 4] = dyp, dyu, dyr
+        J[2, 4] = gT
+        J[4, 4] = er
+        if uc >= 0.0:
+            J[3, 3] = eu
+
+
+@njit(cache=True)
+def _add_noise(P, T, heading, u, qu, qh, qr):
+    """P += the discrete process noise over T: white noise of intensity qu on the speed, qr on the
+    turn rate and qh on the heading, integrated along a straight course at ``heading`` and speed u
+    (closed form; the lags' damping of the noise neglected)."""
+    A, Au = qu * T ** 3 / 3.0, qu * T * T / 2.0
+    L = u * u * (qh * T ** 3 / 3.0 + qr * T ** 5 / 20.0)
+    Lp = u * (qh * T * T / 2.0 + qr * T ** 4 / 8.0)
+    Lr = u * qr * T ** 3 / 6.0
+    ca, sa = math.cos(heading), math.sin(heading)
+    P[0, 0] += A * ca * ca + L * sa * sa
+    P[1, 1] += A * sa * sa + L * ca * ca
+    P[0, 1] += (A - L) * ca * sa
+    P[1, 0] += (A - L) * ca * sa
+    for a, e in ((0, -sa), (1, ca)):  # the lateral direction's share of x and y
+        P[a, 2] += Lp * e
+        P[2, a] += Lp * e
+        P[a, 4] += Lr * e
+        P[4, a] += Lr * e
+    P[0, 3] += Au * ca
+    P[3, 0] += Au * ca
+    P[1, 3] += Au * sa
+    P[3, 1] += Au * sa
+    P[2, 2] += qh * T + qr * T ** 3 / 3.0
+    P[2, 4] += qr * T * T / 2.0
+    P[4, 2] += qr * T * T / 2.0
+    P[3, 3] += qu * T
+    P[4, 4] += qr * T
+
+
+@njit(cache=True)
+def limm_init(m, P, mu, om, z, var, cfg, fresh_rates):
+    """Start every model at the fix z (5,: x, y, psi, u, r) with variances var (5,); the mode
+    probabilities from the modes' shares of time and the fix's turn rate; with ``fresh_rates``
+    the env's rates om (2,) at the middle of the tier's ranges."""
+    if fresh_rates:
+        om[0] = 0.5 * (cfg[C_WT_LO] + cfg[C_WT_HI])
+        om[1] = 0.5 * (cfg[C_WU_LO] + cfg[C_WU_HI])
+    vr = var[4] + cfg[C_SRATE] ** 2
+    tot = 0.0
+    for j in range(K):
+        for a in range(NX):
+            m[j, a] = z[a]
+            for b in range(NX):
+                P[j, a, b] = 0.0
+            P[j, a, a] = var[a]
+        e = z[4] - _rate(j, om[0], om[1])
+        mu[j] = cfg[C_PI + j] * math.exp(-0.5 * e * e / vr)
+        tot += mu[j]
+    for j in range(K):
+        mu[j] = mu[j] / tot if tot > 0.0 else cfg[C_PI + j]
+
+
+@njit(cache=True)
+def limm_update(m, P, mu, om, ng, T, z, var, cfg):
+    """One fix z (5,) with variances var (5,), T seconds after the filter's last: interaction
+    (mixing), prediction of every model, gating, update, the new mode probabilities and the rates'
+    adaptation (all in place). Returns True if the fix's position was gated out."""
+    Pi = np.empty((K, K))
+    _transition(T, cfg, Pi)
+    c = np.zeros(K)
+    for i in range(K):
+        for k in range(K):
+            c[k] += mu[i] * Pi[i, k]
+    x0 = np.empty((K, NX))
+    P0 = np.empty((K, NX, NX))
+    d = np.empty(NX)
+    for j in range(K):
+        if cfg[C_PI + j] == 0.0:
+            continue
+        cj = max(c[j], 1e-300)
+        for a in range(NX):
+            x0[j, a] = m[j, a]
+        for i in range(K):  # x0_j = m_j + sum_i w_ij (m_i - m_j), the heading difference wrapped
+            w = mu[i] * Pi[i, j] / cj
+            if i == j or w == 0.0:
+                continue
+            for a in range(NX):
+                d[a] = m[i, a] - m[j, a]
+            d[2] = _wrap(d[2])
+            for a in range(NX):
+                x0[j, a] += w * d[a]
+        for a in range(NX):
+            for b in range(NX):
+                P0[j, a, b] = 0.0
+        for i in range(K):  # P0_j = sum_i w_ij (P_i + e e^T), e = m_i - x0_j
+            w = mu[i] * Pi[i, j] / cj
+            if w == 0.0:
+                continue
+            for a in range(NX):
+                d[a] = m[i, a] - x0[j, a]
+            d[2] = _wrap(d[2])
+            for a in range(NX):
+                for b in range(NX):
+                    P0[j, a, b] += w * (P[i, a, b] + d[a] * d[b])
+    mp = np.empty((K, NX))
+    Pp = np.empty((K, NX, NX))
+    J = np.empty((NX, NX))
+    tmp = np.empty((NX, NX))
+    tab = np.empty((NQ + 1, 4))
+    _nodes(T, cfg, tab)
+    for j in range(K):
+        if cfg[C_PI + j] == 0.0:
+            continue
+        r = _rate(j, om[0], om[1])
+        _prop(x0[j], T, r, _ucmd(j, cfg), tab, mp[j], J, True)
+        for a in range(NX):
+            for b in range(NX):
+                acc = 0.0
+                for k in range(NX):
+                    acc += J[a, k] * P0[j, k, b]
+                tmp[a, b] = acc
+        for a in range(NX):
+            for b in range(NX):
+                acc = 0.0
+                for k in range(NX):
+                    acc += tmp[a, k] * J[b, k]
+                Pp[j, a, b] = acc
+        _add_noise(Pp[j], T, 0.5 * (x0[j, 2] + mp[j, 2]), x0[j, 3], cfg[C_QU], cfg[C_QH], cfg[C_QR])
+    # the position gate: outside it for every model -> the position is not used
+    nu = np.empty((K, NX))
+    S2, S2i = np.empty((2, 2)), np.empty((2, 2))
+    dmin = math.inf
+    for j in range(K):
+        if cfg[C_PI + j] == 0.0:
+            continue
+        for a in range(NX):
+            nu[j, a] = z[a] - mp[j, a]
+        nu[j, 2] = _wrap(nu[j, 2])
+        for a in range(2):
+            for b in range(2):
+                S2[a, b] = Pp[j, a, b] + (var[a] if a == b else 0.0)
+        _solve_sym(S2, 2, S2i)
+        d2 = 0.0
+        for a in range(2):
+            for b in range(2):
+                d2 += nu[j, a] * S2i[a, b] * nu[j, b]
+        dmin = min(dmin, d2)
+    gated = cfg[C_GATE] > 0.0 and dmin > GATE_POS
+    R = var.copy()
+    if gated:
+        R[0] = 1e8
+        R[1] = 1e8
+    S, Si, Kg = np.empty((NX, NX)), np.empty((NX, NX)), np.empty((NX, NX))
+    ll = np.full(K, -math.inf)
+    for j in range(K):
+        if cfg[C_PI + j] == 0.0:
+            continue
+        for a in range(NX):
+            for b in range(NX):
+                S[a, b] = Pp[j, a, b] + (R[a] if a == b else 0.0)
+        logdet = _solve_sym(S, NX, Si)
+        q = 0.0
+        for a in range(NX):
+            for b in range(NX):
+                q += nu[j, a] * Si[a, b] * nu[j, b]
+        ll[j] = -0.5 * (q + logdet)
+        for a in range(NX):
+            for b in range(NX):
+                acc = 0.0
+                for k in range(NX):
+                    acc += Pp[j, a, k] * Si[k, b]
+                Kg[a, b] = acc
+        for a in range(NX):
+            acc = 0.0
+            for k in range(NX):
+                acc += Kg[a, k] * nu[j, k]
+            m[j, a] = mp[j, a] + acc
+        for a in range(NX):
+            for b in range(NX):
+                acc = 0.0
+                for k in range(NX):
+                    acc += Kg[a, k] * Pp[j, k, b]
+                P[j, a, b] = Pp[j, a, b] - acc
+        for a in range(NX):
+            for b in range(a + 1, NX):
+                v = 0.5 * (P[j, a, b] + P[j, b, a])
+                P[j, a, b] = v
+                P[j, b, a] = v
+    top = -math.inf
+    for j in range(K):
+        top = max(top, ll[j])
+    tot = 0.0
+    for j in range(K):
+        mu[j] = c[j] * math.exp(ll[j] - top) if cfg[C_PI + j] > 0.0 else 0.0
+        tot += mu[j]
+    for j in range(K):
+        mu[j] /= tot
+    # the rates' adaptation to the measured turn rate while a turn model holds the probability
+    g, ar = cfg[C_ADAPT], abs(z[4])
+    if mu[TURN_L] + mu[TURN_R] > 0.8 and ar > 0.5 * om[0]:
+        om[0] = min(max(om[0] + g * (ar - om[0]), cfg[C_WT_LO]), cfg[C_WT_HI])
+    if mu[UTURN_L] + mu[UTURN_R] > 0.8 and ar > 0.5 * om[1]:
+        om[1] = min(max(om[1] + g * (ar - om[1]), cfg[C_WU_LO]), cfg[C_WU_HI])
+    ng[0] = ng[0] + 1 if gated else 0
+    if ng[0] >= 2:
+        limm_init(m, P, mu, om, z, var, cfg, False)
+        ng[0] = 0
+    return gated
+
+
+@njit(cache=True)
+def limm_predict(m, mu, om, T, cfg, pm, pcs, pc):
+    """The present of every model T seconds after the fix: means pm (K, 5), (cos, sin) of their
+    headings pcs (K, 2) and the mode probabilities pc (K,)."""
+    Pi = np.empty((K, K))
+    _transition(T, cfg, Pi)
+    J = np.empty((NX, NX))
+    tab = np.empty((NQ + 1, 4))
+    _nodes(T, cfg, tab)
+    for k in range(K):
+        pc[k] = 0.0
+    for i in range(K):
+        for k in range(K):
+            pc[k] += mu[i] * Pi[i, k]
+    for j in range(K):
+        r = _rate(j, om[0], om[1])
+        _prop(m[j], T, r, _ucmd(j, cfg), tab, pm[j], J, False)
+        pcs[j, 0] = math.cos(pm[j, 2])
+        pcs[j, 1] = math.sin(pm[j, 2])
+
+
+@njit(cache=True, inline="always")
+def _present_out(pm, pcs, pc, om, i, out, odom, pf, c, s, T):
+    """Env i's present estimate (the models' means weighted by their probabilities, the heading
+    as the weighted circular mean on the likeliest model's branch) into its output row."""
+    x = y = u = r = sx = sy = 0.0
+    best, jb = -1.0, 0
+    for j in range(K):
+        w = pc[i, j]
+        x += w * pm[i, j, 0]
+        y += w * pm[i, j, 1]
+        u += w * pm[i, j, 3]
+        r += w * pm[i, j, 4]
+        sx += w * pcs[i, j, 0]
+        sy += w * pcs[i, j, 1]
+        if w > best:
+            best, jb = w, j
+    ref = pm[i, jb, 2]
+    h = ref + _wrap(math.atan2(sy, sx) - ref)
+    out[i, E_VALID] = 1.0
+    out[i, E_X] = x
+    out[i, E_Y] = y
+    out[i, E_PSI] = h
+    out[i, E_U] = u
+    out[i, E_R] = r
+    rx = x - odom[i, 0]
+    ry = y - odom[i, 1]
+    out[i, E_RX] = c * rx + s * ry
+    out[i, E_RY] = -s * rx + c * ry
+    out[i, E_RPSI] = _wrap(h - pf)
+    out[i, E_AGE] = T
+
+
+def _limm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, om, pm, pcs, pc, out):
+    """:func:`limm_step` over ``chunks`` contiguous blocks of envs (a parallel loop in the threaded
+    build). The per-step advance is written out with whole-array indexing (no per-env views: numba
+    counts references of each)."""
+    n = obs.shape[0]
+    dt, tau = cfg[C_DT], cfg[C_TAU]
+    au, ar = math.exp(-dt / cfg[C_TU]), math.exp(-dt / cfg[C_TR])  # the lags over one step
+    gu, gr = cfg[C_TU] * (1.0 - au), cfg[C_TR] * (1.0 - ar)
+    v1 = cfg[C_V1] != 0.0
+    for ch in prange(chunks):
+        nxt = np.empty(K)
+        z = np.empty(5)
+        var = np.empty(5)
+        for i in range(ch * n // chunks, (ch + 1) * n // chunks):
+            pf, c, s = odometry_step(obs, reset, i, odom, vel, t_now, init, dt)
+            if reset[i]:
+                ng[i, 0] = 0
+            psi_f[i] = pf
+            fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, tau)
+            if fresh:
+                dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
+                fix_variances(cfg[C_SPOS], cfg[C_SPM], cfg[C_SPSI], cfg[C_SVEL], cfg[C_SR], dx, dy, var)
+                if init[i]:
+                    z[2] = m[i, 0, 2] + _wrap(z[2] - m[i, 0, 2])  # the heading on the filter's branch
+                    limm_update(m[i], P[i], mu[i], om[i], ng[i], t_meas - t_fix[i], z, var, cfg)
+                else:
+                    limm_init(m[i], P[i], mu[i], om[i], z, var, cfg, True)
+                    init[i] = True
+                    ng[i, 0] = 0
+                t_fix[i] = t_meas
+                limm_predict(m[i], mu[i], om[i], t_now[i] - t_meas, cfg, pm[i], pcs[i], pc[i])
+            elif init[i]:  # one control step of every model and of the mode probabilities
+                for j in range(K):
+                    # the turn rate lags toward the model's; over the step the heading turns by th
+                    # at a constant rate (the quadrature's motion within 1e-6 m per step)
+                    rc = _rate(j, om[i, 0], om[i, 1])
+                    rj = pm[i, j, 4]
+                    th = rc * dt + (rj - rc) * gr
+                    pm[i, j, 4] = rc + (rj - rc) * ar
+                    uj = pm[i, j, 3]
+                    if j == LOITER or j == SPRINT:
+                        uc = cfg[C_VL] if j == LOITER else cfg[C_VS]
+                        dd = uc * dt + (uj - uc) * gu
+                        pm[i, j, 3] = uc + (uj - uc) * au
+                    else:
+                        dd = uj * dt
+                    hh = 0.5 * th
+                    h2 = hh * hh
+                    ch = 1.0 - h2 / 2.0 + h2 * h2 / 24.0  # cos, sin of hh (|hh| < 0.02: to 1e-13)
+                    sh = hh * (1.0 - h2 / 6.0 + h2 * h2 / 120.0)
+                    sc = 1.0 - h2 / 6.0 + h2 * h2 / 120.0  # the chord's length / the arc's
+                    ck, sk = pcs[i, j, 0], pcs[i, j, 1]
+                    cm = ck * ch - sk * sh
+                    sm = sk * ch + ck * sh
+                    pm[i, j, 0] += dd * sc * cm
+                    pm[i, j, 1] += dd * sc * sm
+                    pm[i, j, 2] += th
+                    pcs[i, j, 0] = cm * ch - sm * sh
+                    pcs[i, j, 1] = sm * ch + cm * sh
+                for k in range(K):  # the mode probabilities over one step (the chain's exact matrix)
+                    acc = 0.0
+                    for j in range(K):
+                        acc += pc[i, j] * cfg[C_PDT + j * K + k]
+                    nxt[k] = acc
+                for k in range(K):
+                    pc[i, k] = nxt[k]
+            if init[i]:
+                _present_out(pm, pcs, pc, om, i, out, odom, pf, c, s, t_now[i] - t_fix[i])
+            else:
+                for j in range(NE):
+                    out[i, j] = 0.0
+
+
+#: the step, serial and on numba's threads (per env the same operations: the same bits)
+_limm_serial = njit(cache=True)(_limm_chunks)
+_limm_threads = recompiled(_limm_chunks, "_limm_chunks_par", cache=True, parallel=True)
+#: batches from this many envs are filtered on numba's threads (as the vector env steps them)
+THREADED_MIN_ENVS = 256
+
+
+def limm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, om, pm, pcs, pc, out):
+    """One control step of the model-aware IMM for every env (all arrays updated in place).
+
+    obs (N, 20) v1 observations; reset (N,) bool; cfg: :func:`limm_config`. State: t_now, psi_f,
+    t_fix (N,), odom, vel (N, 2), init (N,) bool, m (N, K, 4), P (N, K, 4, 4), mu (N, K) at the
+    last fix, ng (N, 1) int64 (gated fixes in a row), om (N, 2) the env's turn and U-turn rates;
+    the present: pm (N, K, 5), pcs (N, K, 2), pc (N, K). out (N, NE): the present
+    estimate (the OU0 kernel's columns E_*). From :data:`THREADED_MIN_ENVS` envs on, the envs are
+    split over numba's threads (the same result)."""
+    n = obs.shape[0]
+    threads = numba.get_num_threads() if n >= THREADED_MIN_ENVS else 1
+    step = _limm_threads if threads > 1 else _limm_serial
+    step(threads, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, om, pm, pcs, pc, out)
+
+
+@njit(cache=True)
+def limm_filter_fixes(t_meas, z, var, cfg, t_query):
+    """Run the filter over fixes given in *arrival* order (times of measurement t_meas (F,),
+    values z (F, 5), variances var (F, 5)): a fix older than one already used is inserted where
+    its measurement time belongs and the filter is re-run from the state before it
+    (retrodiction), so the result is that of the fixes in measurement order. Returns, after each
+    arrival, the present (x, y, psi, u, r) (F, 5) at t_query (F,) [s, the clock of t_meas] and the
+    mode probabilities at the newest fix (F, K)."""
+    F = t_meas.shape[0]
+    order = np.empty(F, dtype=np.int64)
+    snap_m, snap_P = np.empty((F, K, NX)), np.empty((F, K, NX, NX))
+    snap_mu, snap_om, snap_ng = np.empty((F, K)), np.empty((F, 2)), np.empty((F, 1), dtype=np.int64)
+    m, P, mu, om = np.empty((K, NX)), np.empty((K, NX, NX)), np.empty(K), np.empty(2)
+    ng = np.zeros(1, dtype=np.int64)
+    pm, pcs, pc = np.empty((K, NX)), np.empty((K, 2)), np.empty(K)
+    out = np.empty((F, 5))
+    x = np.empty(5)
+    mus = np.empty((F, K))
+    nbuf = 0
+    for f in range(F):
+        pos = nbuf
+        while pos > 0 and t_meas[order[pos - 1]] > t_meas[f]:
+            pos -= 1
+        for k in range(nbuf, pos, -1):
+            order[k] = order[k - 1]
+        order[pos] = f
+        nbuf += 1
+        for k in range(pos, nbuf):  # re-run from the snapshot before the inserted fix
+            j = order[k]
+            if k == 0:
+                limm_init(m, P, mu, om, z[j], var[j], cfg, True)
+                ng[0] = 0
+            else:
+                m[:, :] = snap_m[k - 1]
+                P[:, :, :] = snap_P[k - 1]
+                mu[:] = snap_mu[k - 1]
+                om[:] = snap_om[k - 1]
+                ng[0] = snap_ng[k - 1, 0]
+                zz = z[j].copy()
+                zz[2] = m[0, 2] + _wrap(zz[2] - m[0, 2])
+                limm_update(m, P, mu, om, ng, t_meas[j] - t_meas[order[k - 1]], zz, var[j], cfg)
+            snap_m[k] = m
+            snap_P[k] = P
+            snap_mu[k] = mu
+            snap_om[k] = om
+            snap_ng[k, 0] = ng[0]
+        last = nbuf - 1
+        m[:, :] = snap_m[last]
+        mu[:] = snap_mu[last]
+        om[:] = snap_om[last]
+        limm_predict(m, mu, om, t_query[f] - t_meas[order[last]], cfg, pm, pcs, pc)
+        _mixture(pm, pcs, pc, om, x)
+        out[f] = x
+        mus[f] = mu
+    return out, mus
+
+
+@njit(cache=True, inline="always")
+def _mixture(pm, pcs, pc, om, out):
+    """The mixture's (x, y, psi, u, r) from the models' present means into out (5,): the weighted
+    means, the heading as the weighted circular mean on the likeliest model's branch."""
+    sx = sy = 0.0
+    best, jb = -1.0, 0
+    for a in range(5):
+        out[a] = 0.0
+    for j in range(K):
+        w = pc[j]
+        out[0] += w * pm[j, 0]
+        out[1] += w * pm[j, 1]
+        out[3] += w * pm[j, 3]
+        out[4] += w * pm[j, 4]
+        sx += w * pcs[j, 0]
+        sy += w * pcs[j, 1]
+        if w > best:
+            best, jb = w, j
+    out[2] = pm[jb, 2] + _wrap(math.atan2(sy, sx) - pm[jb, 2])
+
+
+@njit(cache=True)
+def limm_trajectory(m, mu, om, init, T, cfg):
+    """The present-state prediction of every env at the spans T (N, S) after its last fix (the
+    mixture of :func:`limm_predict`), (N, S, 5); zeros where ``init`` is False."""
+    n, S = T.shape
+    out = np.zeros((n, S, 5))
+    pm, pcs, pc = np.empty((K, NX)), np.empty((K, 2)), np.empty(K)
+    x = np.empty(5)
+    for i in range(n):
+        if not init[i]:
+            continue
+        for k in range(S):
+            limm_predict(m[i], mu[i], om[i], T[i, k], cfg, pm, pcs, pc)
+            _mixture(pm, pcs, pc, om[i], x)
+            for a in range(5):
+                out[i, k, a] = x[a]
+    return out
