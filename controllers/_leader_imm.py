@@ -169,6 +169,15 @@ def limm_config(spec, tier: str, *, q_u: float = 0.001, q_h: float = 0.01, q_r: 
 
 
 @njit(cache=True, inline="always")
+def _wrap_d(a):
+    """The angle a wrapped to [-pi, pi): returned as it is when already there (the headings'
+    differences between models and fixes nearly always are), else shifted by whole turns."""
+    if -math.pi <= a < math.pi:
+        return a
+    return a - 2.0 * math.pi * math.floor((a + math.pi) / (2.0 * math.pi))
+
+
+@njit(cache=True, inline="always")
 def _rate(j, wt, wu):
     """Model j's turn rate [rad/s] given the env's turn and U-turn rates."""
     if j == TURN_L:
@@ -331,19 +340,46 @@ def limm_init(m, P, mu, om, z, var, cfg, fresh_rates):
 
 
 @njit(cache=True)
-def limm_update(m, P, mu, om, ng, T, z, var, cfg):
+def work():
+    """Scratch arrays of :func:`limm_update` and :func:`limm_predict`, allocated once per batch
+    chunk and reused: Pi (K, K), c (K,), x0, mp, nu (K, 5), P0, Pp (K, 5, 5), d (5,), J, tmp, S,
+    Si, Kg (5, 5), tab (NQ + 1, 4), S2, S2i (2, 2), R (5,), ll (K,)."""
+    return (np.empty((K, K)), np.empty(K), np.empty((K, NX)), np.empty((K, NX)), np.empty((K, NX)),
+            np.empty((K, NX, NX)), np.empty((K, NX, NX)), np.empty(NX), np.empty((NX, NX)), np.empty((NX, NX)),
+            np.empty((NX, NX)), np.empty((NX, NX)), np.empty((NX, NX)), np.empty((NQ + 1, 4)), np.empty((2, 2)),
+            np.empty((2, 2)), np.empty(NX), np.empty(K))
+
+
+@njit(cache=True)
+def _jpjt(J, A, tmp, out):
+    """out = J A J^T for a model's Jacobian J (:func:`_prop`: the identity but for J[0|1, 2:5],
+    J[2, 4], J[3, 3], J[4, 4]), its zeros skipped."""
+    for b in range(NX):
+        tmp[0, b] = A[0, b] + J[0, 2] * A[2, b] + J[0, 3] * A[3, b] + J[0, 4] * A[4, b]
+        tmp[1, b] = A[1, b] + J[1, 2] * A[2, b] + J[1, 3] * A[3, b] + J[1, 4] * A[4, b]
+        tmp[2, b] = A[2, b] + J[2, 4] * A[4, b]
+        tmp[3, b] = J[3, 3] * A[3, b]
+        tmp[4, b] = J[4, 4] * A[4, b]
+    for a in range(NX):
+        out[a, 0] = tmp[a, 0] + J[0, 2] * tmp[a, 2] + J[0, 3] * tmp[a, 3] + J[0, 4] * tmp[a, 4]
+        out[a, 1] = tmp[a, 1] + J[1, 2] * tmp[a, 2] + J[1, 3] * tmp[a, 3] + J[1, 4] * tmp[a, 4]
+        out[a, 2] = tmp[a, 2] + J[2, 4] * tmp[a, 4]
+        out[a, 3] = J[3, 3] * tmp[a, 3]
+        out[a, 4] = J[4, 4] * tmp[a, 4]
+
+
+@njit(cache=True)
+def limm_update(m, P, mu, om, ng, T, z, var, cfg, w):
     """One fix z (5,) with variances var (5,), T seconds after the filter's last: interaction
     (mixing), prediction of every model, gating, update, the new mode probabilities and the rates'
-    adaptation (all in place). Returns True if the fix's position was gated out."""
-    Pi = np.empty((K, K))
+    adaptation (all in place); w: :func:`work`. Returns True if the fix's position was gated out."""
+    Pi, c, x0, mp, nu, P0, Pp, d, J, tmp, S, Si, Kg, tab, S2, S2i, R, ll = w
     _transition(T, cfg, Pi)
-    c = np.zeros(K)
+    for k in range(K):
+        c[k] = 0.0
     for i in range(K):
         for k in range(K):
             c[k] += mu[i] * Pi[i, k]
-    x0 = np.empty((K, NX))
-    P0 = np.empty((K, NX, NX))
-    d = np.empty(NX)
     for j in range(K):
         if cfg[C_PI + j] == 0.0:
             continue
@@ -351,61 +387,43 @@ def limm_update(m, P, mu, om, ng, T, z, var, cfg):
         for a in range(NX):
             x0[j, a] = m[j, a]
         for i in range(K):  # x0_j = m_j + sum_i w_ij (m_i - m_j), the heading difference wrapped
-            w = mu[i] * Pi[i, j] / cj
-            if i == j or w == 0.0:
+            wi = mu[i] * Pi[i, j] / cj
+            if i == j or wi == 0.0:
                 continue
             for a in range(NX):
                 d[a] = m[i, a] - m[j, a]
-            d[2] = _wrap(d[2])
+            d[2] = _wrap_d(d[2])
             for a in range(NX):
-                x0[j, a] += w * d[a]
+                x0[j, a] += wi * d[a]
         for a in range(NX):
             for b in range(NX):
                 P0[j, a, b] = 0.0
         for i in range(K):  # P0_j = sum_i w_ij (P_i + e e^T), e = m_i - x0_j
-            w = mu[i] * Pi[i, j] / cj
-            if w == 0.0:
+            wi = mu[i] * Pi[i, j] / cj
+            if wi == 0.0:
                 continue
             for a in range(NX):
                 d[a] = m[i, a] - x0[j, a]
-            d[2] = _wrap(d[2])
+            d[2] = _wrap_d(d[2])
             for a in range(NX):
                 for b in range(NX):
-                    P0[j, a, b] += w * (P[i, a, b] + d[a] * d[b])
-    mp = np.empty((K, NX))
-    Pp = np.empty((K, NX, NX))
-    J = np.empty((NX, NX))
-    tmp = np.empty((NX, NX))
-    tab = np.empty((NQ + 1, 4))
+                    P0[j, a, b] += wi * (P[i, a, b] + d[a] * d[b])
     _nodes(T, cfg, tab)
     for j in range(K):
         if cfg[C_PI + j] == 0.0:
             continue
         r = _rate(j, om[0], om[1])
         _prop(x0[j], T, r, _ucmd(j, cfg), tab, mp[j], J, True)
-        for a in range(NX):
-            for b in range(NX):
-                acc = 0.0
-                for k in range(NX):
-                    acc += J[a, k] * P0[j, k, b]
-                tmp[a, b] = acc
-        for a in range(NX):
-            for b in range(NX):
-                acc = 0.0
-                for k in range(NX):
-                    acc += tmp[a, k] * J[b, k]
-                Pp[j, a, b] = acc
+        _jpjt(J, P0[j], tmp, Pp[j])
         _add_noise(Pp[j], T, 0.5 * (x0[j, 2] + mp[j, 2]), x0[j, 3], cfg[C_QU], cfg[C_QH], cfg[C_QR])
     # the position gate: outside it for every model -> the position is not used
-    nu = np.empty((K, NX))
-    S2, S2i = np.empty((2, 2)), np.empty((2, 2))
     dmin = math.inf
     for j in range(K):
         if cfg[C_PI + j] == 0.0:
             continue
         for a in range(NX):
             nu[j, a] = z[a] - mp[j, a]
-        nu[j, 2] = _wrap(nu[j, 2])
+        nu[j, 2] = _wrap_d(nu[j, 2])
         for a in range(2):
             for b in range(2):
                 S2[a, b] = Pp[j, a, b] + (var[a] if a == b else 0.0)
@@ -416,12 +434,13 @@ def limm_update(m, P, mu, om, ng, T, z, var, cfg):
                 d2 += nu[j, a] * S2i[a, b] * nu[j, b]
         dmin = min(dmin, d2)
     gated = cfg[C_GATE] > 0.0 and dmin > GATE_POS
-    R = var.copy()
+    for a in range(NX):
+        R[a] = var[a]
     if gated:
         R[0] = 1e8
         R[1] = 1e8
-    S, Si, Kg = np.empty((NX, NX)), np.empty((NX, NX)), np.empty((NX, NX))
-    ll = np.full(K, -math.inf)
+    for j in range(K):
+        ll[j] = -math.inf
     for j in range(K):
         if cfg[C_PI + j] == 0.0:
             continue
@@ -479,13 +498,11 @@ def limm_update(m, P, mu, om, ng, T, z, var, cfg):
 
 
 @njit(cache=True)
-def limm_predict(m, mu, om, T, cfg, pm, pcs, pc):
+def limm_predict(m, mu, om, T, cfg, pm, pcs, pc, w):
     """The present of every model T seconds after the fix: means pm (K, 5), (cos, sin) of their
-    headings pcs (K, 2) and the mode probabilities pc (K,)."""
-    Pi = np.empty((K, K))
+    headings pcs (K, 2) and the mode probabilities pc (K,); w: :func:`work`."""
+    Pi, J, tab = w[0], w[8], w[13]
     _transition(T, cfg, Pi)
-    J = np.empty((NX, NX))
-    tab = np.empty((NQ + 1, 4))
     _nodes(T, cfg, tab)
     for k in range(K):
         pc[k] = 0.0
@@ -516,7 +533,7 @@ def _present_out(pm, pcs, pc, om, i, out, odom, pf, c, s, T):
         if w > best:
             best, jb = w, j
     ref = pm[i, jb, 2]
-    h = ref + _wrap(math.atan2(sy, sx) - ref)
+    h = ref + _wrap_d(math.atan2(sy, sx) - ref)
     out[i, E_VALID] = 1.0
     out[i, E_X] = x
     out[i, E_Y] = y
@@ -527,7 +544,7 @@ def _present_out(pm, pcs, pc, om, i, out, odom, pf, c, s, T):
     ry = y - odom[i, 1]
     out[i, E_RX] = c * rx + s * ry
     out[i, E_RY] = -s * rx + c * ry
-    out[i, E_RPSI] = _wrap(h - pf)
+    out[i, E_RPSI] = _wrap_d(h - pf)
     out[i, E_AGE] = T
 
 
@@ -542,6 +559,7 @@ def _limm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, 
     v1 = cfg[C_V1] != 0.0
     for ch in prange(chunks):
         nxt = np.empty(K)
+        w = work()
         z = np.empty(5)
         var = np.empty(5)
         for i in range(ch * n // chunks, (ch + 1) * n // chunks):
@@ -555,13 +573,13 @@ def _limm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, 
                 fix_variances(cfg[C_SPOS], cfg[C_SPM], cfg[C_SPSI], cfg[C_SVEL], cfg[C_SR], dx, dy, var)
                 if init[i]:
                     z[2] = m[i, 0, 2] + _wrap(z[2] - m[i, 0, 2])  # the heading on the filter's branch
-                    limm_update(m[i], P[i], mu[i], om[i], ng[i], t_meas - t_fix[i], z, var, cfg)
+                    limm_update(m[i], P[i], mu[i], om[i], ng[i], t_meas - t_fix[i], z, var, cfg, w)
                 else:
                     limm_init(m[i], P[i], mu[i], om[i], z, var, cfg, True)
                     init[i] = True
                     ng[i, 0] = 0
                 t_fix[i] = t_meas
-                limm_predict(m[i], mu[i], om[i], t_now[i] - t_meas, cfg, pm[i], pcs[i], pc[i])
+                limm_predict(m[i], mu[i], om[i], t_now[i] - t_meas, cfg, pm[i], pcs[i], pc[i], w)
             elif init[i]:  # one control step of every model and of the mode probabilities
                 for j in range(K):
                     # the turn rate lags toward the model's; over the step the heading turns by th
@@ -644,6 +662,7 @@ def limm_filter_fixes(t_meas, z, var, cfg, t_query):
     out = np.empty((F, 5))
     x = np.empty(5)
     mus = np.empty((F, K))
+    w = work()
     nbuf = 0
     for f in range(F):
         pos = nbuf
@@ -666,7 +685,7 @@ def limm_filter_fixes(t_meas, z, var, cfg, t_query):
                 ng[0] = snap_ng[k - 1, 0]
                 zz = z[j].copy()
                 zz[2] = m[0, 2] + _wrap(zz[2] - m[0, 2])
-                limm_update(m, P, mu, om, ng, t_meas[j] - t_meas[order[k - 1]], zz, var[j], cfg)
+                limm_update(m, P, mu, om, ng, t_meas[j] - t_meas[order[k - 1]], zz, var[j], cfg, w)
             snap_m[k] = m
             snap_P[k] = P
             snap_mu[k] = mu
@@ -676,7 +695,7 @@ def limm_filter_fixes(t_meas, z, var, cfg, t_query):
         m[:, :] = snap_m[last]
         mu[:] = snap_mu[last]
         om[:] = snap_om[last]
-        limm_predict(m, mu, om, t_query[f] - t_meas[order[last]], cfg, pm, pcs, pc)
+        limm_predict(m, mu, om, t_query[f] - t_meas[order[last]], cfg, pm, pcs, pc, w)
         _mixture(pm, pcs, pc, om, x)
         out[f] = x
         mus[f] = mu
@@ -701,7 +720,7 @@ def _mixture(pm, pcs, pc, om, out):
         sy += w * pcs[j, 1]
         if w > best:
             best, jb = w, j
-    out[2] = pm[jb, 2] + _wrap(math.atan2(sy, sx) - pm[jb, 2])
+    out[2] = pm[jb, 2] + _wrap_d(math.atan2(sy, sx) - pm[jb, 2])
 
 
 @njit(cache=True)
@@ -712,11 +731,12 @@ def limm_trajectory(m, mu, om, init, T, cfg):
     out = np.zeros((n, S, 5))
     pm, pcs, pc = np.empty((K, NX)), np.empty((K, 2)), np.empty(K)
     x = np.empty(5)
+    w = work()
     for i in range(n):
         if not init[i]:
             continue
         for k in range(S):
-            limm_predict(m[i], mu[i], om[i], T[i, k], cfg, pm, pcs, pc)
+            limm_predict(m[i], mu[i], om[i], T[i, k], cfg, pm, pcs, pc, w)
             _mixture(pm, pcs, pc, om[i], x)
             for a in range(5):
                 out[i, k, a] = x[a]

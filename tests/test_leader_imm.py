@@ -169,7 +169,7 @@ def test_gating_rejects_multipath_outliers_and_keeps_inliers_at_the_gates_rate(s
             if outlier:
                 a = rng.uniform(0, 2 * math.pi)
                 zz[:2] += 3.0 * np.array([math.cos(a), math.sin(a)])
-            gated = L.limm_update(m, P, mu, om, ng, 1.0, zz, SIG ** 2, cfg)
+            gated = L.limm_update(m, P, mu, om, ng, 1.0, zz, SIG ** 2, cfg, L.work())
             if k < 10:
                 continue
             if outlier:
