@@ -17,7 +17,8 @@ from controllers.hierarchical import Gains, HierarchicalController
 from controllers.pid import PIDController, PIDGains
 
 __all__ = ["CONTROLLERS", "EXTENDED_CONTROLLERS", "ALL_CONTROLLERS", "MODEL_AWARE_CONTROLLERS", "LEADER_IMM",
-           "make_controller", "ScriptedPolicy", "HierarchicalController", "Gains", "PIDController", "PIDGains",
+           "LEADER_LIMM", "make_controller", "ScriptedPolicy", "HierarchicalController", "Gains", "PIDController",
+           "PIDGains",
            "TargetEstimator", "EstimatorConfig", "DisturbanceObserver", "DOB_TIME_CONSTANT", "TIER_K_P",
            "default_gains", "thruster_model"]
 
@@ -71,6 +72,15 @@ LEADER_IMM: dict[str, dict[str, float]] = {
     "Leader-Easy": {"imm_q_u": 0.001, "imm_q_r": 0.001, "imm_q_h": 0.001, "imm_tau_s": 40.0},
     "Leader-Medium": {"imm_q_u": 0.001, "imm_q_r": 0.001, "imm_q_h": 0.0001, "imm_tau_s": 40.0},
     "Leader-Hard": {"imm_q_u": 0.01, "imm_q_r": 0.001, "imm_q_h": 0.001, "imm_tau_s": 40.0},
+}
+
+#: the model-aware IMM's settings per Leader tier (ours): the best of the grid of
+#: experiments/leader_limm_fit.py by the same score on the same TRAINING seeds 0-63
+#: (``python -m experiments.leader_limm_fit``, results/leader_limm_fit.md; a test checks the two agree)
+LEADER_LIMM: dict[str, dict[str, float]] = {
+    "Leader-Easy": {"limm_q_u": 0.001, "limm_q_h": 0.001, "limm_q_r": 0.0001, "limm_sojourn": 0.25},
+    "Leader-Medium": {"limm_q_u": 0.001, "limm_q_h": 0.001, "limm_q_r": 0.0001, "limm_sojourn": 0.25},
+    "Leader-Hard": {"limm_q_u": 0.01, "limm_q_h": 0.01, "limm_q_r": 0.0001, "limm_sojourn": 0.1},
 }
 
 
@@ -128,7 +138,8 @@ def make_controller(name: str, spec: TaskSpec, gains: Gains | None = None) -> Sc
         import dataclasses
 
         model = "LEADER_PF" if name == "PROPOSED_PF_DOB" else "LEADER_IMM"
-        cfg = dataclasses.replace(EstimatorConfig.for_spec(spec), model=model)
+        fitted = LEADER_LIMM.get(getattr(spec, "tier", None), {}) if model == "LEADER_IMM" else {}
+        cfg = dataclasses.replace(EstimatorConfig.for_spec(spec), model=model, **fitted)
         dob = DisturbanceObserver(spec.nominal, spec.dt, spec.force_limits, DOB_TIME_CONSTANT)
         gains = gains if gains is not None else default_gains("PROPOSED_KF_DOB", spec)
         return HierarchicalController(spec, prediction=True, robust=True, gains=gains, name=name,

@@ -154,6 +154,10 @@ class EstimatorConfig:
     imm_q_h: float = 0.001  #: IMM: white-noise intensity on the heading (CV) [rad^2/s]
     imm_tau_s: float = 15.0  #: IMM: mean time between switches of the CV / CT models [s] (> 0)
     imm_gate: bool = True  #: IMM: a fix's position outside the 99.9 % chi-square gate of both models is not used
+    limm_q_u: float = 0.001  #: LEADER_IMM: white-noise intensity on the speed [m^2/s^3]
+    limm_q_h: float = 0.01  #: LEADER_IMM: white-noise intensity on the heading [rad^2/s]
+    limm_q_r: float = 0.0001  #: LEADER_IMM: white-noise intensity on the turn rate [rad^2/s^3]
+    limm_sojourn: float = 0.25  #: LEADER_IMM: the mode chain's switch rates times this (> 0) [-]
     pf_particles: int = 1000  #: LEADER_PF: particles per env (the model-aware filter of a Leader tier)
     pf_temper: float = 4.0  #: LEADER_PF: the heading, speed and turn-rate likelihoods' variances times this
     pf_drift: float = 0.03  #: LEADER_PF: position likelihood variance added per second between fixes [m^2/s]
@@ -178,7 +182,7 @@ class EstimatorConfig:
         if (self.adapt or self.smooth_s) and self.model != "OU0":
             raise ValueError(f"adapt={self.adapt!r} / smooth_s={self.smooth_s!r} need model='OU0' "
                              f"(got model={self.model!r})")
-        for n in ("sigma_pos", "sigma_psi", "sigma_vel", "sigma_r", "tau_u", "tau_r", "imm_tau_s"):
+        for n in ("sigma_pos", "sigma_psi", "sigma_vel", "sigma_r", "tau_u", "tau_r", "imm_tau_s", "limm_sojourn"):
             if getattr(self, n) <= 0:
                 raise ValueError(f"{n}={getattr(self, n)!r} is invalid: must be a finite number > 0")
 
@@ -600,7 +604,9 @@ class TargetEstimator:
                 raise ValueError(f"model={self.model!r} needs a Leader tier's task (it knows the tier's modes); got "
                                  f"tier={tier!r}: valid tiers are {list(LEADER_TIERS)}")
         if self.model == "LEADER_IMM":
-            self._cfg = _leader_imm.limm_config(spec, tier)
+            c = self.config
+            self._cfg = _leader_imm.limm_config(spec, tier, q_u=c.limm_q_u, q_h=c.limm_q_h, q_r=c.limm_q_r,
+                                                sojourn_scale=c.limm_sojourn, gate=c.imm_gate)
         if self.model == "LEADER_PF":
             self._cfg, self._prior = _leader_pf.pf_config(spec, tier)
             self._cfg[_leader_pf.C_TEMPER] = self.config.pf_temper

@@ -252,3 +252,26 @@ def test_the_model_aware_imm_controller_runs_on_leader_tiers_only():
         b = twin.step(o, start, with_cov=False)
         np.testing.assert_array_equal(a.rel_x, b.rel_x)
         assert np.all(np.isfinite(a.rel_x)) and np.all(np.abs(a.rel_x[a.valid]) < 100.0)
+
+
+def test_the_model_aware_imm_settings_are_the_fitted_ones_in_the_committed_table():
+    """controllers.LEADER_LIMM is the table written by experiments/leader_limm_fit.py (the best of its
+    grid on training seeds), and PROPOSED_LIMM_DOB's estimator runs with them."""
+    import json
+    import re
+    from pathlib import Path
+
+    from controllers import LEADER_LIMM
+
+    text = (Path(__file__).resolve().parents[1] / "results" / "leader_limm_fit.md").read_text()
+    assert json.loads(re.search(r"```json\n(.*?)```", text, re.S).group(1)) == LEADER_LIMM
+    spec = gym.make("AUVFollow-Leader-Hard-v1").unwrapped.task_spec
+    cfg = make_controller("PROPOSED_LIMM_DOB", spec).estimator.config
+    assert {k: getattr(cfg, k) for k in LEADER_LIMM["Leader-Hard"]} == LEADER_LIMM["Leader-Hard"]
+
+
+def test_bad_model_aware_imm_settings_are_refused_by_name():
+    with pytest.raises(ValueError, match="limm_sojourn=0"):
+        EstimatorConfig(model="LEADER_IMM", limm_sojourn=0.0)
+    with pytest.raises(ValueError, match="limm_q_h=-1"):
+        EstimatorConfig(model="LEADER_IMM", limm_q_h=-1.0)
