@@ -78,11 +78,11 @@ LEADER_IMM: dict[str, dict[str, float]] = {
 #: experiments/leader_limm_fit.py by the same score on the same TRAINING seeds 0-63
 #: (``python -m experiments.leader_limm_fit``, results/leader_limm_fit.md; a test checks the two agree)
 LEADER_LIMM: dict[str, dict[str, float]] = {
-    "Leader-Easy": {"limm_q_u": 0.001, "limm_q_h": 0.001, "limm_q_r": 0.0001, "limm_sojourn": 0.25},
-    "Leader-Medium": {"limm_q_u": 0.001, "limm_q_h": 0.001, "limm_q_r": 0.0001, "limm_sojourn": 0.25},
-    "Leader-Hard": {"limm_q_u": 0.01, "limm_q_h": 0.01, "limm_q_r": 0.0001, "limm_sojourn": 0.1},
+    "Leader-Easy": {"limm_q_u": 0.001, "limm_q_h": 0.001, "limm_q_r": 0.0001, "limm_sojourn": 0.5, "limm_shape": 4},
+    "Leader-Medium": {"limm_q_u": 0.001, "limm_q_h": 0.001, "limm_q_r": 0.0001, "limm_sojourn": 0.25,
+                      "limm_shape": 1},
+    "Leader-Hard": {"limm_q_u": 0.001, "limm_q_h": 0.001, "limm_q_r": 0.0001, "limm_sojourn": 0.25, "limm_shape": 4},
 }
-
 
 def thruster_model(spec: TaskSpec) -> dict[str, float]:
     """The thruster lag and rate limit a follower knows of its own thrusters (the task spec's;

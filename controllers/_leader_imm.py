@@ -24,19 +24,24 @@ adapt per env to the fixes' measured turn rate while a turn model holds the prob
 to the range: each episode draws its rates from it). Process noise: white noise on the speed
 (``q_u``), the turn rate (``q_r``) and the heading (``q_h``), in closed form along the course.
 
-Switches: the semi-Markov modes as a continuous-time Markov chain (a mode leaves at the rate
-1 / its mean duration, times ``sojourn_scale``; every mode returns to cruise, cruise leaves to the
-others in the generator's shares, surveys and wandering weighted by the survey share); its
-transition matrix over a span is exp(G T), from the generator matrix's eigen-decomposition. The
-position is gated as in the generic IMM (:mod:`controllers._imm`: 99.9 % chi-square for every
-model; two gated fixes in a row restart the filter).
+Switches: the semi-Markov modes with sojourn-time-dependent switching (Campo, Mookerjee and
+Bar-Shalom, 1991). Each mode keeps its expected age (the time since it was entered, given that it
+holds); over a span it stays with the survival ratio S(age + T) / S(age) of a Gamma(k) duration
+with the tier's mean (times 1 / ``sojourn_scale``; the generator's shape is 4, k = 1 makes the
+modes a Markov chain). Leaving cruise goes to the other modes in the generator's shares (surveys
+and wandering weighted by the survey share), leaving any other mode goes back to cruise; a second
+switch within one span is neglected. At a fix the mass that stayed ages by the span and the mass
+that entered counts half of it. The position is gated as in the generic IMM
+(:mod:`controllers._imm`: 99.9 % chi-square for every model; two gated fixes in a row restart the
+filter).
 
 The present estimate: at a fix the models' means are predicted to now and the mode probabilities
 carried over the same span; between fixes both advance by one control step (each model by a
-constant-rate arc over the step, in a few multiplications; the chain by its one-step matrix), so
-the control loop pays little per step. Out-of-order fixes: the envs never deliver one (the receiver
-keeps the newest packet); :func:`limm_filter_fixes` takes fixes in arrival order and handles them
-by retrodiction (re-running from the snapshot before the fix), as the generic IMM.
+constant-rate arc over the step, the survival ratios by a running exponential and a cubic, a few
+multiplications per model), so the control loop pays little per step. Out-of-order fixes: the envs
+never deliver one (the receiver keeps the newest packet); :func:`limm_filter_fixes` takes fixes in
+arrival order and handles them by retrodiction (re-running from the snapshot before the fix), as
+the generic IMM.
 """
 
 from __future__ import annotations
@@ -77,23 +82,21 @@ C_QU, C_QH, C_GATE, C_TU, C_SRATE = 8, 9, 10, 11, 12
 C_VL, C_VS, C_WT_LO, C_WT_HI, C_WU_LO, C_WU_HI, C_ADAPT, C_TR = 13, 14, 15, 16, 17, 18, 19, 20
 C_QR = 21
 C_LAM, C_PI, C_SPLIT = 22, 22 + K, 22 + 2 * K
-# the chain's transition matrix over T is V diag(exp(D T)) W (eigen-decomposition of its generator),
-# over one control step it is PDT (K, K), all row-major
-C_D, C_V, C_W, C_PDT = 22 + 3 * K, 22 + 4 * K, 22 + 4 * K + K * K, 22 + 4 * K + 2 * K * K
-NC = 22 + 4 * K + 3 * K * K
+C_SHAPE = 22 + 3 * K  #: the sojourns' Gamma shape (a whole number 1-4; 1: exponential, a Markov chain)
+NC = 23 + 3 * K
 NQ = 6  #: quadrature nodes of a model's motion over a span
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(NQ)  #: Gauss-Legendre nodes, weights on [-1, 1]
 CRUISE, TURN_L, TURN_R, UTURN_L, UTURN_R, LOITER, SPRINT = range(K)
 
 
 def limm_config(spec, tier: str, *, q_u: float = 0.001, q_h: float = 0.01, q_r: float = 0.0001, s_rate: float = 0.03,
-                adapt: float = 0.3, sojourn_scale: float = 0.25, gate: bool = True) -> np.ndarray:
+                adapt: float = 0.3, sojourn_scale: float = 1.0, shape: int = 4, gate: bool = True) -> np.ndarray:
     """The config vector of a Leader tier from its published table (:data:`auv_follow_env.tiers.LEADER_TIERS`):
     the mode set, the ranges' midpoints (speeds, rates, mean durations, leg length), the survey
     share, the speed lag, and the fix noise; ``q_u``, ``q_h``, ``s_rate`` (std of a mode's turn
     rate about its model's [rad/s]), ``adapt`` (gain of the rates' adaptation) and
-    ``sojourn_scale`` (the chain's switch rates times this: the generator's Gamma(4) durations end
-    later than a Markov chain's exponential ones at the same mean) are ours."""
+    ``sojourn_scale`` (the modes' leaving rates, 1 / mean duration, times this) and ``shape`` (the
+    sojourns' Gamma shape: the generator's is 4; 1 makes the modes a Markov chain) are ours."""
     from auv_follow_env.tiers import LEADER_TIERS
 
     t = LEADER_TIERS[tier]
@@ -133,38 +136,16 @@ def limm_config(spec, tier: str, *, q_u: float = 0.001, q_h: float = 0.01, q_r: 
     survey = {UTURN_L: (0.5, t_u), UTURN_R: (0.5, t_u)} if share > 0 else {}
     # exits from cruise per second: (1 - share) / mc to the wander modes, share / t_leg to the U-turns
     out_w, out_s = (1.0 - share) / mc, share / t_leg
-    lam0 = (out_w + out_s) * sojourn_scale
-    c[C_LAM + CRUISE] = lam0
-    G = np.zeros((K, K))
-    G[CRUISE, CRUISE] = -lam0
+    c[C_LAM + CRUISE] = (out_w + out_s) * sojourn_scale
     for group, out in ((wander, out_w), (survey, out_s)):
         for j, (p, dur) in group.items():
             c[C_LAM + j] = sojourn_scale / dur
             c[C_SPLIT + j] = out * p / (out_w + out_s)
-            G[CRUISE, j] = lam0 * c[C_SPLIT + j]
-            G[j, j] = -c[C_LAM + j]
-            G[j, CRUISE] = c[C_LAM + j]
-    # the chain's stationary shares: pi_j lam_j = pi_0 lam_0 split_j (every mode returns to cruise)
+    # the modes' shares of time: a visit's share times its mean duration (every mode returns to cruise)
     act = [CRUISE] + [j for j in range(1, K) if c[C_SPLIT + j] > 0]
-    pi = np.array([1.0] + [lam0 * c[C_SPLIT + j] / c[C_LAM + j] for j in act[1:]])
-    pi /= pi.sum()
-    c[[C_PI + j for j in act]] = pi
-    # the chain is reversible (a star): D^1/2 G D^-1/2 is symmetric, its eigenbasis gives exp(G T)
-    Ga = G[np.ix_(act, act)]
-    h = np.sqrt(pi)
-    d, Q = np.linalg.eigh(0.5 * ((h[:, None] * Ga / h[None, :]) + (h[:, None] * Ga / h[None, :]).T))
-    V, W = np.eye(K), np.eye(K)
-    D = np.zeros(K)
-    V[np.ix_(act, act)] = Q / h[:, None]
-    W[np.ix_(act, act)] = Q.T * h[None, :]
-    for a, j in enumerate(act):
-        D[j] = d[a]
-    inactive = [j for j in range(K) if j not in act]
-    V[np.ix_(act, inactive)] = 0.0  # (the inactive modes: probability 0, kept there)
-    c[C_D:C_D + K] = D
-    c[C_V:C_V + K * K] = V.ravel()
-    c[C_W:C_W + K * K] = W.ravel()
-    c[C_PDT:C_PDT + K * K] = _transition_matrix(c, spec.dt).ravel()
+    pi = np.array([1.0] + [c[C_LAM + CRUISE] * c[C_SPLIT + j] / c[C_LAM + j] for j in act[1:]])
+    c[[C_PI + j for j in act]] = pi / pi.sum()
+    c[C_SHAPE] = float(shape)
     return c
 
 
@@ -201,25 +182,61 @@ def _ucmd(j, cfg):
     return -1.0
 
 
+@njit(cache=True, inline="always")
+def _surv_poly(x, k):
+    """sum_{n < k} x^n / n! (k = 1-4, Horner): the Gamma(k) survival function is exp(-x) times this
+    (x = k t / mean)."""
+    if k == 4.0:
+        return 1.0 + x * (1.0 + x * (0.5 + x * (1.0 / 6.0)))
+    if k == 3.0:
+        return 1.0 + x * (1.0 + x * 0.5)
+    if k == 2.0:
+        return 1.0 + x
+    return 1.0
+
+
+@njit(cache=True, inline="always")
+def _stay(a, T, lam, k):
+    """The probability that a mode entered ``a`` seconds ago lasts T more seconds, its duration
+    Gamma(k) with mean 1 / lam: S(a + T) / S(a)."""
+    if lam == 0.0:
+        return 1.0
+    x0, x1 = k * lam * a, k * lam * (a + T)
+    return math.exp(-k * lam * T) * _surv_poly(x1, k) / _surv_poly(x0, k)
+
+
 @njit(cache=True)
-def _transition(T, cfg, Pi):
-    """The chain's transition matrix over T into Pi (K, K): Pi[i, k] = P(mode k at T | i at 0) =
-    (V diag(exp(D T)) W)[i, k]."""
-    e = np.empty(K)
-    for k in range(K):
-        e[k] = math.exp(cfg[C_D + k] * T)
+def _transition(T, ag, cfg, Pi):
+    """The modes' transition matrix over T into Pi (K, K), Pi[i, k] = P(mode k at T | i at 0), for
+    modes entered ag (K,) seconds before: a mode stays with its sojourn's survival ratio; leaving
+    cruise goes to the others by their shares, leaving another mode goes to cruise (a second switch
+    within T neglected: a Gamma(4) sojourn rarely ends that soon)."""
+    k = cfg[C_SHAPE]
     for i in range(K):
-        for k in range(K):
-            acc = 0.0
-            for a in range(K):
-                acc += cfg[C_V + i * K + a] * e[a] * cfg[C_W + a * K + k]
-            Pi[i, k] = max(acc, 0.0)
+        for j in range(K):
+            Pi[i, j] = 0.0
+        if cfg[C_PI + i] == 0.0:
+            continue
+        p = _stay(ag[i], T, cfg[C_LAM + i], k)
+        Pi[i, i] = p
+        if i == CRUISE:
+            for j in range(1, K):
+                Pi[i, j] = (1.0 - p) * cfg[C_SPLIT + j]
+        else:
+            Pi[i, CRUISE] = 1.0 - p
 
 
-def _transition_matrix(cfg, T):
+def _transition_matrix(cfg, T, ag=None):
     Pi = np.empty((K, K))
-    _transition(T, cfg, Pi)
+    _transition(T, np.zeros(K) if ag is None else np.asarray(ag, dtype=np.float64), cfg, Pi)
     return Pi
+
+
+@njit(cache=True, inline="always")
+def _stationary_age(cfg, j):
+    """A mode's expected age at a random time in it (length-biased): mean (1 + 1 / k) / 2."""
+    lam = cfg[C_LAM + j]
+    return 0.0 if lam == 0.0 else 0.5 * (1.0 + 1.0 / cfg[C_SHAPE]) / lam
 
 
 @njit(cache=True)
@@ -317,10 +334,10 @@ def _add_noise(P, T, heading, u, qu, qh, qr):
 
 
 @njit(cache=True)
-def limm_init(m, P, mu, om, z, var, cfg, fresh_rates):
+def limm_init(m, P, mu, ag, om, z, var, cfg, fresh_rates):
     """Start every model at the fix z (5,: x, y, psi, u, r) with variances var (5,); the mode
-    probabilities from the modes' shares of time and the fix's turn rate; with ``fresh_rates``
-    the env's rates om (2,) at the middle of the tier's ranges."""
+    probabilities from the modes' shares of time and the fix's turn rate, their ages ag (K,) the
+    stationary ones; with ``fresh_rates`` the env's rates om (2,) at the middle of the tier's ranges."""
     if fresh_rates:
         om[0] = 0.5 * (cfg[C_WT_LO] + cfg[C_WT_HI])
         om[1] = 0.5 * (cfg[C_WU_LO] + cfg[C_WU_HI])
@@ -335,6 +352,7 @@ def limm_init(m, P, mu, om, z, var, cfg, fresh_rates):
         e = z[4] - _rate(j, om[0], om[1])
         mu[j] = cfg[C_PI + j] * math.exp(-0.5 * e * e / vr)
         tot += mu[j]
+        ag[j] = _stationary_age(cfg, j)
     for j in range(K):
         mu[j] = mu[j] / tot if tot > 0.0 else cfg[C_PI + j]
 
@@ -369,17 +387,22 @@ def _jpjt(J, A, tmp, out):
 
 
 @njit(cache=True)
-def limm_update(m, P, mu, om, ng, T, z, var, cfg, w):
+def limm_update(m, P, mu, ag, om, ng, T, z, var, cfg, w):
     """One fix z (5,) with variances var (5,), T seconds after the filter's last: interaction
     (mixing), prediction of every model, gating, update, the new mode probabilities and the rates'
-    adaptation (all in place); w: :func:`work`. Returns True if the fix's position was gated out."""
+    adaptation; the modes' ages ag (K,): the mass that stayed aged by T, the mass that entered
+    T / 2 old (all in place); w: :func:`work`. Returns True if the fix's position was gated out."""
     Pi, c, x0, mp, nu, P0, Pp, d, J, tmp, S, Si, Kg, tab, S2, S2i, R, ll = w
-    _transition(T, cfg, Pi)
+    _transition(T, ag, cfg, Pi)
     for k in range(K):
         c[k] = 0.0
     for i in range(K):
         for k in range(K):
             c[k] += mu[i] * Pi[i, k]
+    for j in range(K):
+        if c[j] > 0.0:
+            stay = mu[j] * Pi[j, j]
+            ag[j] = (stay * (ag[j] + T) + (c[j] - stay) * 0.5 * T) / c[j]
     for j in range(K):
         if cfg[C_PI + j] == 0.0:
             continue
@@ -492,23 +515,28 @@ def limm_update(m, P, mu, om, ng, T, z, var, cfg, w):
         om[1] = min(max(om[1] + g * (ar - om[1]), cfg[C_WU_LO]), cfg[C_WU_HI])
     ng[0] = ng[0] + 1 if gated else 0
     if ng[0] >= 2:
-        limm_init(m, P, mu, om, z, var, cfg, False)
+        limm_init(m, P, mu, ag, om, z, var, cfg, False)
         ng[0] = 0
     return gated
 
 
 @njit(cache=True)
-def limm_predict(m, mu, om, T, cfg, pm, pcs, pc, w):
+def limm_predict(m, mu, ag, om, T, cfg, pm, pcs, pc, sq, sp0, w):
     """The present of every model T seconds after the fix: means pm (K, 5), (cos, sin) of their
-    headings pcs (K, 2) and the mode probabilities pc (K,); w: :func:`work`."""
+    headings pcs (K, 2) and the mode probabilities pc (K,); for the steps that follow, each mode's
+    exp(-k lam T) into sq (K,) and 1 / its survival polynomial at its age into sp0 (K,); w: :func:`work`."""
     Pi, J, tab = w[0], w[8], w[13]
-    _transition(T, cfg, Pi)
+    _transition(T, ag, cfg, Pi)
     _nodes(T, cfg, tab)
-    for k in range(K):
-        pc[k] = 0.0
+    k = cfg[C_SHAPE]
+    for j in range(K):
+        pc[j] = 0.0
+        lam = cfg[C_LAM + j]
+        sq[j] = math.exp(-k * lam * T)
+        sp0[j] = 1.0 / _surv_poly(k * lam * ag[j], k)
     for i in range(K):
-        for k in range(K):
-            pc[k] += mu[i] * Pi[i, k]
+        for j in range(K):
+            pc[j] += mu[i] * Pi[i, j]
     for j in range(K):
         r = _rate(j, om[0], om[1])
         _prop(m[j], T, r, _ucmd(j, cfg), tab, pm[j], J, False)
@@ -548,38 +576,76 @@ def _present_out(pm, pcs, pc, om, i, out, odom, pf, c, s, T):
     out[i, E_AGE] = T
 
 
-def _limm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, om, pm, pcs, pc, out):
+def _limm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ag, ng, om, pm, pcs, pc, sq,
+                 sp0, fx, out, src, copy_rows, partial):
     """:func:`limm_step` over ``chunks`` contiguous blocks of envs (a parallel loop in the threaded
-    build). The per-step advance is written out with whole-array indexing (no per-env views: numba
-    counts references of each)."""
+    build); with ``copy_rows`` each env's state is first copied from ``src`` (with ``partial`` the
+    state at the last fix only where src's ``fx`` says it changed). The per-step advance is written
+    out with whole-array indexing (no per-env views: numba counts references of each)."""
     n = obs.shape[0]
+    (s_t_now, s_odom, s_vel, s_psi_f, s_init, s_t_fix, s_m, s_P, s_mu, s_ag, s_ng, s_om, s_pm, s_pcs, s_pc, s_sq,
+     s_sp0, s_fx) = src
     dt, tau = cfg[C_DT], cfg[C_TAU]
     au, ar = math.exp(-dt / cfg[C_TU]), math.exp(-dt / cfg[C_TR])  # the lags over one step
     gu, gr = cfg[C_TU] * (1.0 - au), cfg[C_TR] * (1.0 - ar)
     v1 = cfg[C_V1] != 0.0
+    kk = cfg[C_SHAPE]
+    edt = np.empty(K)  # each mode's exp(-k lam dt)
+    klam = np.empty(K)
+    for j in range(K):
+        klam[j] = kk * cfg[C_LAM + j]
+        edt[j] = math.exp(-klam[j] * dt)
     for ch in prange(chunks):
-        nxt = np.empty(K)
+        stay = np.empty(K)
         w = work()
         z = np.empty(5)
         var = np.empty(5)
         for i in range(ch * n // chunks, (ch + 1) * n // chunks):
+            if copy_rows:  # env i's row of every state array from src
+                t_now[i] = s_t_now[i]
+                psi_f[i] = s_psi_f[i]
+                for a in range(2):
+                    odom[i, a] = s_odom[i, a]
+                    vel[i, a] = s_vel[i, a]
+                for j in range(K):
+                    pc[i, j] = s_pc[i, j]
+                    sq[i, j] = s_sq[i, j]
+                    sp0[i, j] = s_sp0[i, j]
+                    pcs[i, j, 0] = s_pcs[i, j, 0]
+                    pcs[i, j, 1] = s_pcs[i, j, 1]
+                    for a in range(NX):
+                        pm[i, j, a] = s_pm[i, j, a]
+                if s_fx[i] or not partial:  # the state at the last fix (else this row holds it already)
+                    init[i] = s_init[i]
+                    t_fix[i] = s_t_fix[i]
+                    ng[i, 0] = s_ng[i, 0]
+                    om[i, 0] = s_om[i, 0]
+                    om[i, 1] = s_om[i, 1]
+                    for j in range(K):
+                        mu[i, j] = s_mu[i, j]
+                        ag[i, j] = s_ag[i, j]
+                        for a in range(NX):
+                            m[i, j, a] = s_m[i, j, a]
+                            for b in range(NX):
+                                P[i, j, a, b] = s_P[i, j, a, b]
             pf, c, s = odometry_step(obs, reset, i, odom, vel, t_now, init, dt)
             if reset[i]:
                 ng[i, 0] = 0
             psi_f[i] = pf
             fresh, t_meas = fix_timing(obs, i, t_now[i], init[i], t_fix[i], v1, tau)
+            fx[i] = fresh or reset[i]  # (the state at the last fix changes in this step)
             if fresh:
                 dx, dy = fix_measurement(obs, i, odom, pf, c, s, z)
                 fix_variances(cfg[C_SPOS], cfg[C_SPM], cfg[C_SPSI], cfg[C_SVEL], cfg[C_SR], dx, dy, var)
                 if init[i]:
                     z[2] = m[i, 0, 2] + _wrap(z[2] - m[i, 0, 2])  # the heading on the filter's branch
-                    limm_update(m[i], P[i], mu[i], om[i], ng[i], t_meas - t_fix[i], z, var, cfg, w)
+                    limm_update(m[i], P[i], mu[i], ag[i], om[i], ng[i], t_meas - t_fix[i], z, var, cfg, w)
                 else:
-                    limm_init(m[i], P[i], mu[i], om[i], z, var, cfg, True)
+                    limm_init(m[i], P[i], mu[i], ag[i], om[i], z, var, cfg, True)
                     init[i] = True
                     ng[i, 0] = 0
                 t_fix[i] = t_meas
-                limm_predict(m[i], mu[i], om[i], t_now[i] - t_meas, cfg, pm[i], pcs[i], pc[i], w)
+                limm_predict(m[i], mu[i], ag[i], om[i], t_now[i] - t_meas, cfg, pm[i], pcs[i], pc[i], sq[i], sp0[i], w)
             elif init[i]:  # one control step of every model and of the mode probabilities
                 for j in range(K):
                     # the turn rate lags toward the model's; over the step the heading turns by th
@@ -608,13 +674,17 @@ def _limm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, 
                     pm[i, j, 2] += th
                     pcs[i, j, 0] = cm * ch - sm * sh
                     pcs[i, j, 1] = sm * ch + cm * sh
-                for k in range(K):  # the mode probabilities over one step (the chain's exact matrix)
-                    acc = 0.0
-                    for j in range(K):
-                        acc += pc[i, j] * cfg[C_PDT + j * K + k]
-                    nxt[k] = acc
-                for k in range(K):
-                    pc[i, k] = nxt[k]
+                # the mode probabilities now (as _transition over T from the fix, in steps)
+                T = t_now[i] - t_fix[i]
+                for j in range(K):
+                    sq[i, j] *= edt[j]
+                    stay[j] = sq[i, j] * _surv_poly(klam[j] * (ag[i, j] + T), kk) * sp0[i, j]
+                back = 0.0
+                for j in range(1, K):
+                    if cfg[C_PI + j] > 0.0:
+                        pc[i, j] = mu[i, j] * stay[j] + mu[i, CRUISE] * (1.0 - stay[CRUISE]) * cfg[C_SPLIT + j]
+                        back += mu[i, j] * (1.0 - stay[j])
+                pc[i, CRUISE] = mu[i, CRUISE] * stay[CRUISE] + back
             if init[i]:
                 _present_out(pm, pcs, pc, om, i, out, odom, pf, c, s, t_now[i] - t_fix[i])
             else:
@@ -629,19 +699,28 @@ _limm_threads = recompiled(_limm_chunks, "_limm_chunks_par", cache=True, paralle
 THREADED_MIN_ENVS = 256
 
 
-def limm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, om, pm, pcs, pc, out):
+def limm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ag, ng, om, pm, pcs, pc, sq, sp0, fx,
+              out, src=None, partial=False):
     """One control step of the model-aware IMM for every env (all arrays updated in place).
 
     obs (N, 20) v1 observations; reset (N,) bool; cfg: :func:`limm_config`. State: t_now, psi_f,
-    t_fix (N,), odom, vel (N, 2), init (N,) bool, m (N, K, 4), P (N, K, 4, 4), mu (N, K) at the
-    last fix, ng (N, 1) int64 (gated fixes in a row), om (N, 2) the env's turn and U-turn rates;
-    the present: pm (N, K, 5), pcs (N, K, 2), pc (N, K). out (N, NE): the present
+    t_fix (N,), odom, vel (N, 2), init (N,) bool, m (N, K, 5), P (N, K, 5, 5), mu (N, K), ag (N, K)
+    (the modes' ages) at the last fix, ng (N, 1) int64 (gated fixes in a row), om (N, 2) the env's
+    turn and U-turn rates; the present: pm (N, K, 5), pcs (N, K, 2), pc (N, K), sq, sp0 (N, K)
+    (:func:`limm_predict`); fx (N,) bool: the env's state at the last fix changed in this step (a
+    fix, or the episode's start). ``src``: None (the state arrays are updated in place) or a tuple
+    of state arrays of the same shapes (t_now .. fx) to start from (the state arrays given are then
+    overwritten: a peek's copy made inside the kernel); with ``partial`` the arrays given are the
+    state src was stepped from, so the state at the last fix is copied only where src's fx is set
+    (the rest of it is already equal: two thirds of the state's bytes). out (N, NE): the present
     estimate (the OU0 kernel's columns E_*). From :data:`THREADED_MIN_ENVS` envs on, the envs are
     split over numba's threads (the same result)."""
     n = obs.shape[0]
     threads = numba.get_num_threads() if n >= THREADED_MIN_ENVS else 1
     step = _limm_threads if threads > 1 else _limm_serial
-    step(threads, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng, om, pm, pcs, pc, out)
+    dst = (t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ag, ng, om, pm, pcs, pc, sq, sp0, fx)
+    step(threads, obs, reset, cfg, *dst, out, dst if src is None else tuple(src), src is not None,
+         bool(partial) and src is not None)
 
 
 @njit(cache=True)
@@ -656,7 +735,9 @@ def limm_filter_fixes(t_meas, z, var, cfg, t_query):
     order = np.empty(F, dtype=np.int64)
     snap_m, snap_P = np.empty((F, K, NX)), np.empty((F, K, NX, NX))
     snap_mu, snap_om, snap_ng = np.empty((F, K)), np.empty((F, 2)), np.empty((F, 1), dtype=np.int64)
-    m, P, mu, om = np.empty((K, NX)), np.empty((K, NX, NX)), np.empty(K), np.empty(2)
+    snap_ag = np.empty((F, K))
+    m, P, mu, om, ag = np.empty((K, NX)), np.empty((K, NX, NX)), np.empty(K), np.empty(2), np.empty(K)
+    sq, sp0 = np.empty(K), np.empty(K)
     ng = np.zeros(1, dtype=np.int64)
     pm, pcs, pc = np.empty((K, NX)), np.empty((K, 2)), np.empty(K)
     out = np.empty((F, 5))
@@ -675,27 +756,30 @@ def limm_filter_fixes(t_meas, z, var, cfg, t_query):
         for k in range(pos, nbuf):  # re-run from the snapshot before the inserted fix
             j = order[k]
             if k == 0:
-                limm_init(m, P, mu, om, z[j], var[j], cfg, True)
+                limm_init(m, P, mu, ag, om, z[j], var[j], cfg, True)
                 ng[0] = 0
             else:
                 m[:, :] = snap_m[k - 1]
                 P[:, :, :] = snap_P[k - 1]
                 mu[:] = snap_mu[k - 1]
                 om[:] = snap_om[k - 1]
+                ag[:] = snap_ag[k - 1]
                 ng[0] = snap_ng[k - 1, 0]
                 zz = z[j].copy()
                 zz[2] = m[0, 2] + _wrap(zz[2] - m[0, 2])
-                limm_update(m, P, mu, om, ng, t_meas[j] - t_meas[order[k - 1]], zz, var[j], cfg, w)
+                limm_update(m, P, mu, ag, om, ng, t_meas[j] - t_meas[order[k - 1]], zz, var[j], cfg, w)
             snap_m[k] = m
             snap_P[k] = P
             snap_mu[k] = mu
             snap_om[k] = om
+            snap_ag[k] = ag
             snap_ng[k, 0] = ng[0]
         last = nbuf - 1
         m[:, :] = snap_m[last]
         mu[:] = snap_mu[last]
         om[:] = snap_om[last]
-        limm_predict(m, mu, om, t_query[f] - t_meas[order[last]], cfg, pm, pcs, pc, w)
+        ag[:] = snap_ag[last]
+        limm_predict(m, mu, ag, om, t_query[f] - t_meas[order[last]], cfg, pm, pcs, pc, sq, sp0, w)
         _mixture(pm, pcs, pc, om, x)
         out[f] = x
         mus[f] = mu
@@ -724,19 +808,19 @@ def _mixture(pm, pcs, pc, om, out):
 
 
 @njit(cache=True)
-def limm_trajectory(m, mu, om, init, T, cfg):
+def limm_trajectory(m, mu, ag, om, init, T, cfg):
     """The present-state prediction of every env at the spans T (N, S) after its last fix (the
     mixture of :func:`limm_predict`), (N, S, 5); zeros where ``init`` is False."""
     n, S = T.shape
     out = np.zeros((n, S, 5))
-    pm, pcs, pc = np.empty((K, NX)), np.empty((K, 2)), np.empty(K)
+    pm, pcs, pc, sq, sp0 = np.empty((K, NX)), np.empty((K, 2)), np.empty(K), np.empty(K), np.empty(K)
     x = np.empty(5)
     w = work()
     for i in range(n):
         if not init[i]:
             continue
         for k in range(S):
-            limm_predict(m[i], mu[i], om[i], T[i, k], cfg, pm, pcs, pc, w)
+            limm_predict(m[i], mu[i], ag[i], om[i], T[i, k], cfg, pm, pcs, pc, sq, sp0, w)
             _mixture(pm, pcs, pc, om[i], x)
             for a in range(5):
                 out[i, k, a] = x[a]

@@ -157,7 +157,8 @@ class EstimatorConfig:
     limm_q_u: float = 0.001  #: LEADER_IMM: white-noise intensity on the speed [m^2/s^3]
     limm_q_h: float = 0.01  #: LEADER_IMM: white-noise intensity on the heading [rad^2/s]
     limm_q_r: float = 0.0001  #: LEADER_IMM: white-noise intensity on the turn rate [rad^2/s^3]
-    limm_sojourn: float = 0.25  #: LEADER_IMM: the mode chain's switch rates times this (> 0) [-]
+    limm_sojourn: float = 1.0  #: LEADER_IMM: the modes' leaving rates (1 / mean duration) times this (> 0) [-]
+    limm_shape: int = 4  #: LEADER_IMM: the sojourns' Gamma shape, 1-4 (the generator's: 4; 1: a Markov chain)
     pf_particles: int = 1000  #: LEADER_PF: particles per env (the model-aware filter of a Leader tier)
     pf_temper: float = 4.0  #: LEADER_PF: the heading, speed and turn-rate likelihoods' variances times this
     pf_drift: float = 0.03  #: LEADER_PF: position likelihood variance added per second between fixes [m^2/s]
@@ -165,6 +166,8 @@ class EstimatorConfig:
     def __post_init__(self) -> None:
         if self.model not in MODELS:
             raise ValueError(f"model={self.model!r} is invalid: must be one of {list(MODELS)}")
+        if isinstance(self.limm_shape, bool) or not isinstance(self.limm_shape, int) or not 1 <= self.limm_shape <= 4:
+            raise ValueError(f"limm_shape={self.limm_shape!r} is invalid: must be a whole number in [1, 4]")
         if isinstance(self.pf_particles, bool) or not isinstance(self.pf_particles, int) or not \
                 1 <= self.pf_particles <= 100_000:
             raise ValueError(f"pf_particles={self.pf_particles!r} is invalid: must be a whole number in [1, 100000]")
@@ -172,7 +175,7 @@ class EstimatorConfig:
             if not isinstance(getattr(self, b), bool):
                 raise ValueError(f"{b}={getattr(self, b)!r} is invalid: must be True or False")
         for f in fields(self):
-            if f.name in ("model", "adapt", "imm_gate", "pf_particles"):
+            if f.name in ("model", "adapt", "imm_gate", "pf_particles", "limm_shape"):
                 continue
             v = getattr(self, f.name)
             inf_ok = f.name in ("tau_u", "tau_r") and self.model == "OU0" and v == math.inf
@@ -459,19 +462,25 @@ class _LIMMState:
     m: np.ndarray  # (N, K, 4) the models' means at t_fix
     P: np.ndarray  # (N, K, 4, 4)
     mu: np.ndarray  # (N, K) mode probabilities at t_fix
+    ag: np.ndarray  # (N, K) [s] the modes' ages at t_fix
     ng: np.ndarray  # (N, 1) int64: gated fixes in a row
     om: np.ndarray  # (N, 2) [rad/s] the env's turn and U-turn rates
     pm: np.ndarray  # (N, K, 4) the models' means now
     pcs: np.ndarray  # (N, K, 2) cos, sin of their headings now
     pc: np.ndarray  # (N, K) mode probabilities now
+    sq: np.ndarray  # (N, K) exp(-k lam T) of each mode (T: since the fix)
+    sp0: np.ndarray  # (N, K) 1 / each mode's survival polynomial at its age at the fix
+    fx: np.ndarray  # (N,) bool: the state at the last fix changed in the step that made this state
+    gen: np.ndarray  # (1,) int64: the steps this state has taken (a peek's copy uses it)
 
     @classmethod
     def fresh(cls, n: int) -> _LIMMState:
         k, nx = _leader_imm.K, _leader_imm.NX
         return cls(np.zeros(n), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n), np.zeros(n, dtype=bool),
                    np.zeros(n), np.zeros((n, k, nx)), np.tile(np.eye(nx), (n, k, 1, 1)), np.zeros((n, k)),
-                   np.zeros((n, 1), dtype=np.int64), np.zeros((n, 2)), np.zeros((n, k, nx)), np.zeros((n, k, 2)),
-                   np.zeros((n, k)))
+                   np.zeros((n, k)), np.zeros((n, 1), dtype=np.int64), np.zeros((n, 2)), np.zeros((n, k, nx)),
+                   np.zeros((n, k, 2)), np.zeros((n, k)), np.ones((n, k)), np.ones((n, k)), np.ones(n, dtype=bool),
+                   np.zeros(1, dtype=np.int64))
 
     @property
     def x(self) -> np.ndarray:  # (the batch size, as the other states' x)
@@ -606,7 +615,8 @@ class TargetEstimator:
         if self.model == "LEADER_IMM":
             c = self.config
             self._cfg = _leader_imm.limm_config(spec, tier, q_u=c.limm_q_u, q_h=c.limm_q_h, q_r=c.limm_q_r,
-                                                sojourn_scale=c.limm_sojourn, gate=c.imm_gate)
+                                                sojourn_scale=c.limm_sojourn, shape=c.limm_shape,
+                                                gate=c.imm_gate)
         if self.model == "LEADER_PF":
             self._cfg, self._prior = _leader_pf.pf_config(spec, tier)
             self._cfg[_leader_pf.C_TEMPER] = self.config.pf_temper
@@ -665,9 +675,17 @@ class TargetEstimator:
         state = out[:, _IMM_STATE_COLUMNS]
         return _kernel_estimate(out, state, cov if with_cov else None, zeroed=True)
 
-    def _run_limm(self, st: _LIMMState, obs: np.ndarray, mask: np.ndarray) -> TargetEstimate:
+    def _run_limm(self, st: _LIMMState, obs: np.ndarray, mask: np.ndarray, src: _LIMMState | None = None,
+                  reused: bool = False) -> TargetEstimate:
+        """The model-aware IMM's kernel on ``st`` (in place; from the state ``src`` instead if given,
+        as :meth:`_run_imm`). ``reused``: st is the spare state a commit left (not a new one)."""
         out = np.empty((obs.shape[0], _ou0.NE))
-        _leader_imm.limm_step(obs, mask, self._cfg, *_state_arrays(st), out)
+        # a peek into the very state src was stepped from (the spare a commit left, one step behind)
+        # copies only what changed since
+        partial = src is not None and reused and int(st.gen[0]) == int(src.gen[0]) - 1
+        _leader_imm.limm_step(obs, mask, self._cfg, *_state_arrays(st)[:-1], out,
+                              None if src is None else _state_arrays(src)[:-1], partial)
+        st.gen[0] = (st if src is None else src).gen[0] + 1
         return _kernel_estimate(out, out[:, _IMM_STATE_COLUMNS], None, zeroed=True)
 
     def _run_pf(self, st: _PFState, obs: np.ndarray, mask: np.ndarray) -> TargetEstimate:
@@ -841,10 +859,12 @@ class TargetEstimator:
         if self.model in _NUMBA_MODELS:
             obs = np.ascontiguousarray(obs, dtype=np.float64)
         if not commit:
-            if self.model == "IMM":  # the peek's copy of the state is made inside the kernel
-                st = _blank_like(self._s, self._spare)
+            if self.model in ("IMM", "LEADER_IMM"):  # the peek's copy of the state is made inside the kernel
+                spare = self._spare
+                st = _blank_like(self._s, spare)
                 self._spare = None
-                est = self._run_imm(st, obs, mask, with_cov, src=self._s)
+                est = (self._run_imm(st, obs, mask, with_cov, src=self._s) if self.model == "IMM" else
+                       self._run_limm(st, obs, mask, src=self._s, reused=st is spare))
             else:
                 st = _copy_state(self._s, self._spare) if self.model in _NUMBA_MODELS else self._s.copy()
                 self._spare = None
@@ -919,7 +939,7 @@ class TargetEstimator:
             X = _imm.imm_trajectory(st.m, st.P, st.mu, st.init, np.ascontiguousarray(T), self._cfg)
         elif self.model == "LEADER_IMM":  # the models' mixture from the last fix
             T = np.where(st.init, st.t_now - st.t_fix, 0.0)[:, None] + tk[None, :]
-            X = _leader_imm.limm_trajectory(st.m, st.mu, st.om, st.init, np.ascontiguousarray(T), self._cfg)
+            X = _leader_imm.limm_trajectory(st.m, st.mu, st.ag, st.om, st.init, np.ascontiguousarray(T), self._cfg)
         else:
             T = np.where(st.init, st.t_now - st.t_fix, 0.0)[:, None] + tk[None, :]
             X = propagate_mean(self.model, np.repeat(st.x[:, None, :], K, axis=1), T, self._taus)  # (N, K, n)
