@@ -435,10 +435,12 @@ def binned_breakdown(episodes: pd.DataFrame, condition: str, metric: str = "true
 # --- figures -----------------------------------------------------------------------------
 
 def _legend(n: int, columns: int = 3) -> tuple[dict, int]:
-    """A legend under the plot in ``columns`` columns (long labels fit) and the height it takes."""
+    """A legend under the plot in ``columns`` columns (long labels fit) and the height it takes. The
+    columns take 90 % of the figure's width: the legend starts at the plot area's left edge, which
+    the axis labels push right, so full-width columns ran past the figure's right edge."""
     rows = math.ceil(n / columns)
     return ({"orientation": "h", "yanchor": "top", "y": -0.08, "x": 0.0, "xanchor": "left",
-             "entrywidth": 1.0 / columns, "entrywidthmode": "fraction", "font": {"size": 11},
+             "entrywidth": 0.9 / columns, "entrywidthmode": "fraction", "font": {"size": 11},
              "traceorder": "normal"}, 22 * rows + 30)
 
 
