@@ -282,6 +282,61 @@ def _mix(m, P, mu, T, ts, c, x0, P0, with_cov, d, dpsi):
 
 
 @njit(cache=True)
+def gate_distance(Pp, nu, var, j, S2, S2i):
+    """Model j's squared Mahalanobis distance of the fix's position: the innovation nu[j, :2] under
+    the predicted position covariance Pp[j, :2, :2] plus the fix's variances var[:2] (S2, S2i: 2 x 2
+    scratch). Shared by the IMMs (and the model-aware one, :mod:`controllers._leader_imm`)."""
+    for a in range(2):
+        for b in range(2):
+            S2[a, b] = Pp[j, a, b] + (var[a] if a == b else 0.0)
+    _solve_sym(S2, 2, S2i)
+    d2 = 0.0
+    for a in range(2):
+        for b in range(2):
+            d2 += nu[j, a] * S2i[a, b] * nu[j, b]
+    return d2
+
+
+@njit(cache=True)
+def model_update(Pp, mp, nu, R, m, P, j, S, Si, Kg):
+    """Model j's Kalman update in place: prediction (mp[j], Pp[j]), innovation nu[j] of a fix with
+    the noise variances R (the state is measured directly), into m[j], P[j] (symmetrised); S, Si,
+    Kg: (n, n) scratch. Returns the fix's log-likelihood under the model (up to a constant)."""
+    n = S.shape[0]
+    for a in range(n):
+        for b in range(n):
+            S[a, b] = Pp[j, a, b] + (R[a] if a == b else 0.0)
+    logdet = _solve_sym(S, n, Si)
+    q = 0.0
+    for a in range(n):
+        for b in range(n):
+            q += nu[j, a] * Si[a, b] * nu[j, b]
+    for a in range(n):
+        for b in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += Pp[j, a, k] * Si[k, b]
+            Kg[a, b] = acc
+    for a in range(n):
+        acc = 0.0
+        for k in range(n):
+            acc += Kg[a, k] * nu[j, k]
+        m[j, a] = mp[j, a] + acc
+    for a in range(n):
+        for b in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += Kg[a, k] * Pp[j, k, b]
+            P[j, a, b] = Pp[j, a, b] - acc
+    for a in range(n):
+        for b in range(a + 1, n):
+            v = 0.5 * (P[j, a, b] + P[j, b, a])
+            P[j, a, b] = v
+            P[j, b, a] = v
+    return -0.5 * (q + logdet)
+
+
+@njit(cache=True)
 def imm_update(m, P, mu, ng, T, z, var, cfg):
     """One fix z (5,) with variances var (5,), T seconds after the filter's last: interaction,
     prediction of both models, gating, update and the new mode probabilities (all in place).
@@ -296,15 +351,7 @@ def imm_update(m, P, mu, ng, T, z, var, cfg):
     S2, S2i = np.empty((2, 2)), np.empty((2, 2))
     dmin = math.inf
     for j in range(2):
-        for a in range(2):
-            for b in range(2):
-                S2[a, b] = Pp[j, a, b] + (var[a] if a == b else 0.0)
-        _solve_sym(S2, 2, S2i)
-        d2 = 0.0
-        for a in range(2):
-            for b in range(2):
-                d2 += nu[j, a] * S2i[a, b] * nu[j, b]
-        dmin = min(dmin, d2)
+        dmin = min(dmin, gate_distance(Pp, nu, var, j, S2, S2i))
     gated = cfg[C_GATE] > 0.0 and dmin > GATE_POS
     R = var.copy()
     if gated:
@@ -314,37 +361,7 @@ def imm_update(m, P, mu, ng, T, z, var, cfg):
     ll = np.empty(2)
     K = np.empty((NX, NX))
     for j in range(2):
-        for a in range(NX):
-            for b in range(NX):
-                S[a, b] = Pp[j, a, b] + (R[a] if a == b else 0.0)
-        logdet = _solve_sym(S, NX, Si)
-        q = 0.0
-        for a in range(NX):
-            for b in range(NX):
-                q += nu[j, a] * Si[a, b] * nu[j, b]
-        ll[j] = -0.5 * (q + logdet)
-        for a in range(NX):
-            for b in range(NX):
-                acc = 0.0
-                for k in range(NX):
-                    acc += Pp[j, a, k] * Si[k, b]
-                K[a, b] = acc
-        for a in range(NX):
-            acc = 0.0
-            for k in range(NX):
-                acc += K[a, k] * nu[j, k]
-            m[j, a] = mp[j, a] + acc
-        for a in range(NX):
-            for b in range(NX):
-                acc = 0.0
-                for k in range(NX):
-                    acc += K[a, k] * Pp[j, k, b]
-                P[j, a, b] = Pp[j, a, b] - acc
-        for a in range(NX):
-            for b in range(a + 1, NX):
-                v = 0.5 * (P[j, a, b] + P[j, b, a])
-                P[j, a, b] = v
-                P[j, b, a] = v
+        ll[j] = model_update(Pp, mp, nu, R, m, P, j, S, Si, K)
     m[0, 4] = 0.0
     top = max(ll[0], ll[1])
     w0 = c[0] * math.exp(ll[0] - top)

@@ -53,7 +53,7 @@ import numpy as np
 from numba import njit, prange
 
 from auv_follow_env.dynamics import recompiled
-from controllers._imm import GATE_POS, _solve_sym, _wrap
+from controllers._imm import GATE_POS, _wrap, gate_distance, model_update
 from controllers._ou0 import (
     E_AGE,
     E_PSI,
@@ -447,15 +447,7 @@ def limm_update(m, P, mu, ag, om, ng, T, z, var, cfg, w):
         for a in range(NX):
             nu[j, a] = z[a] - mp[j, a]
         nu[j, 2] = _wrap_d(nu[j, 2])
-        for a in range(2):
-            for b in range(2):
-                S2[a, b] = Pp[j, a, b] + (var[a] if a == b else 0.0)
-        _solve_sym(S2, 2, S2i)
-        d2 = 0.0
-        for a in range(2):
-            for b in range(2):
-                d2 += nu[j, a] * S2i[a, b] * nu[j, b]
-        dmin = min(dmin, d2)
+        dmin = min(dmin, gate_distance(Pp, nu, var, j, S2, S2i))
     gated = cfg[C_GATE] > 0.0 and dmin > GATE_POS
     for a in range(NX):
         R[a] = var[a]
@@ -467,37 +459,7 @@ def limm_update(m, P, mu, ag, om, ng, T, z, var, cfg, w):
     for j in range(K):
         if cfg[C_PI + j] == 0.0:
             continue
-        for a in range(NX):
-            for b in range(NX):
-                S[a, b] = Pp[j, a, b] + (R[a] if a == b else 0.0)
-        logdet = _solve_sym(S, NX, Si)
-        q = 0.0
-        for a in range(NX):
-            for b in range(NX):
-                q += nu[j, a] * Si[a, b] * nu[j, b]
-        ll[j] = -0.5 * (q + logdet)
-        for a in range(NX):
-            for b in range(NX):
-                acc = 0.0
-                for k in range(NX):
-                    acc += Pp[j, a, k] * Si[k, b]
-                Kg[a, b] = acc
-        for a in range(NX):
-            acc = 0.0
-            for k in range(NX):
-                acc += Kg[a, k] * nu[j, k]
-            m[j, a] = mp[j, a] + acc
-        for a in range(NX):
-            for b in range(NX):
-                acc = 0.0
-                for k in range(NX):
-                    acc += Kg[a, k] * Pp[j, k, b]
-                P[j, a, b] = Pp[j, a, b] - acc
-        for a in range(NX):
-            for b in range(a + 1, NX):
-                v = 0.5 * (P[j, a, b] + P[j, b, a])
-                P[j, a, b] = v
-                P[j, b, a] = v
+        ll[j] = model_update(Pp, mp, nu, R, m, P, j, S, Si, Kg)
     top = -math.inf
     for j in range(K):
         top = max(top, ll[j])

@@ -459,7 +459,7 @@ class _LIMMState:
     psi_f: np.ndarray  # (N,) [rad]
     init: np.ndarray  # (N,) bool
     t_fix: np.ndarray  # (N,) [s]
-    m: np.ndarray  # (N, K, 4) the models' means at t_fix
+    m: np.ndarray  # (N, K, 5) the models' means at t_fix
     P: np.ndarray  # (N, K, 4, 4)
     mu: np.ndarray  # (N, K) mode probabilities at t_fix
     ag: np.ndarray  # (N, K) [s] the modes' ages at t_fix

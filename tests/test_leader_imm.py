@@ -8,13 +8,12 @@ import math
 import gymnasium as gym
 import numpy as np
 import pytest
+from test_imm import SIG, _arc  # (the exact piecewise-constant-rate arc and the tiers' fix noise)
 
 import auv_follow_env  # noqa: F401
 from controllers import _leader_imm as L
 from controllers import make_controller
 from controllers.estimator import EstimatorConfig, TargetEstimator
-
-SIG = np.array([0.05, 0.05, 0.02, 0.02, 0.01])
 
 
 @pytest.fixture(scope="module")
@@ -24,26 +23,6 @@ def spec():
 
 def _cfg(spec, **kw):
     return L.limm_config(spec, "Leader-Hard", **kw)
-
-
-def _arc(t: np.ndarray, r_of_t, u: float = 0.5) -> np.ndarray:
-    """Exact poses (x, y, psi, u, r) of a target at speed u whose turn rate is piecewise constant
-    (r_of_t(t)), integrated in closed form segment by segment at 1 ms."""
-    out = np.zeros((len(t), 5))
-    x = y = psi = tt = 0.0
-    for k, tk in enumerate(t):
-        while tt < tk - 1e-12:
-            r, step = r_of_t(tt), min(1e-3, tk - tt)
-            if r != 0.0:
-                x += u * (math.sin(psi + r * step) - math.sin(psi)) / r
-                y += u * (math.cos(psi) - math.cos(psi + r * step)) / r
-            else:
-                x += u * step * math.cos(psi)
-                y += u * step * math.sin(psi)
-            psi += r * step
-            tt += step
-        out[k] = (x, y, psi, u, r_of_t(tk))
-    return out
 
 
 def test_the_modes_switch_with_the_tiers_shares_and_gamma_sojourns(spec):
