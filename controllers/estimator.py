@@ -460,7 +460,7 @@ class _LIMMState:
     init: np.ndarray  # (N,) bool
     t_fix: np.ndarray  # (N,) [s]
     m: np.ndarray  # (N, K, 5) the models' means at t_fix
-    P: np.ndarray  # (N, K, 4, 4)
+    P: np.ndarray  # (N, K, 5, 5)
     mu: np.ndarray  # (N, K) mode probabilities at t_fix
     ag: np.ndarray  # (N, K) [s] the modes' ages at t_fix
     ng: np.ndarray  # (N, 1) int64: gated fixes in a row
