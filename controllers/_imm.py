@@ -35,21 +35,12 @@ from numba import njit, prange
 
 from auv_follow_env.dynamics import recompiled
 from controllers._ou0 import (
-    E_AGE,
-    E_PSI,
-    E_R,
-    E_RPSI,
-    E_RX,
-    E_RY,
-    E_U,
-    E_VALID,
-    E_X,
-    E_Y,
     NE,
     fix_measurement,
     fix_timing,
     fix_variances,
     odometry_step,
+    write_estimate,
 )
 
 # config vector (float64) indices
@@ -523,18 +514,7 @@ def _imm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m
                             cov_out[i, a, b] = Po[a, b]
                 else:
                     x, y, h, u, r = _present_mean(m, mu, i, T, ts, gap[i])
-                out[i, E_VALID] = 1.0
-                out[i, E_X] = x
-                out[i, E_Y] = y
-                out[i, E_PSI] = h
-                out[i, E_U] = u
-                out[i, E_R] = r
-                rx = x - odom[i, 0]
-                ry = y - odom[i, 1]
-                out[i, E_RX] = c * rx + s * ry
-                out[i, E_RY] = -s * rx + c * ry
-                out[i, E_RPSI] = _wrap(h - pf)
-                out[i, E_AGE] = T
+                write_estimate(out, i, x, y, h, u, r, odom[i, 0], odom[i, 1], c, s, _wrap(h - pf), T)
             else:
                 for j in range(NE):
                     out[i, j] = 0.0

@@ -55,21 +55,12 @@ from numba import njit, prange
 from auv_follow_env.dynamics import recompiled
 from controllers._imm import GATE_POS, _wrap, gate_distance, model_update
 from controllers._ou0 import (
-    E_AGE,
-    E_PSI,
-    E_R,
-    E_RPSI,
-    E_RX,
-    E_RY,
-    E_U,
-    E_VALID,
-    E_X,
-    E_Y,
     NE,
     fix_measurement,
     fix_timing,
     fix_variances,
     odometry_step,
+    write_estimate,
 )
 
 K = 7  #: models
@@ -524,18 +515,7 @@ def _present_out(pm, pcs, pc, om, i, out, odom, pf, c, s, T):
             best, jb = w, j
     ref = pm[i, jb, 2]
     h = ref + _wrap_d(math.atan2(sy, sx) - ref)
-    out[i, E_VALID] = 1.0
-    out[i, E_X] = x
-    out[i, E_Y] = y
-    out[i, E_PSI] = h
-    out[i, E_U] = u
-    out[i, E_R] = r
-    rx = x - odom[i, 0]
-    ry = y - odom[i, 1]
-    out[i, E_RX] = c * rx + s * ry
-    out[i, E_RY] = -s * rx + c * ry
-    out[i, E_RPSI] = _wrap_d(h - pf)
-    out[i, E_AGE] = T
+    write_estimate(out, i, x, y, h, u, r, odom[i, 0], odom[i, 1], c, s, _wrap_d(h - pf), T)
 
 
 def _limm_chunks(chunks, obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ag, ng, om, pm, pcs, pc, sq,

@@ -357,6 +357,25 @@ def fix_variances(s_pos, s_pos_per_m, s_psi, s_vel, s_r, dx, dy, var):
 
 
 @njit(cache=True, inline="always")
+def write_estimate(out, i, x, y, h, u, r, ox, oy, c, s, rel_psi, age):
+    """Env i's output row (columns E_*, shared by the target filters): the present pose x, y, h,
+    speed u and turn rate r in the odometry frame, the same relative to the follower at (ox, oy)
+    with heading cos c, sin s (rel_psi: the heading difference, wrapped by the caller), the age."""
+    out[i, E_VALID] = 1.0
+    out[i, E_X] = x
+    out[i, E_Y] = y
+    out[i, E_PSI] = h
+    out[i, E_U] = u
+    out[i, E_R] = r
+    rx = x - ox
+    ry = y - oy
+    out[i, E_RX] = c * rx + s * ry
+    out[i, E_RY] = -s * rx + c * ry
+    out[i, E_RPSI] = rel_psi
+    out[i, E_AGE] = age
+
+
+@njit(cache=True, inline="always")
 def fix_measurement(obs, i, odom, pf, c, s, z):
     """The fix of observation row i in env i's odometry frame into z (5,): x, y, heading, surge
     speed, turn rate; returns its offset (dx, dy) in the follower's body frame."""
@@ -470,18 +489,8 @@ def _ou0_chunks(chunks, obs, reset, cfg, kstep, t_now, odom, vel, psi_f, init, t
                 ex = xp[i, 0] + dlt[i, 0]
                 ey = xp[i, 1] + dlt[i, 1]
                 pt = xp[i, 2] + dlt[i, 2]
-                out[i, E_VALID] = 1.0
-                out[i, E_X] = ex
-                out[i, E_Y] = ey
-                out[i, E_PSI] = pt
-                out[i, E_U] = xp[i, 3]
-                out[i, E_R] = xp[i, 4]
-                rx = ex - odom[i, 0]
-                ry = ey - odom[i, 1]
-                out[i, E_RX] = c * rx + s * ry
-                out[i, E_RY] = -s * rx + c * ry
-                out[i, E_RPSI] = _wrap(pt - pf)
-                out[i, E_AGE] = t_now[i] - t_fix[i]
+                write_estimate(out, i, ex, ey, pt, xp[i, 3], xp[i, 4], odom[i, 0], odom[i, 1], c, s, _wrap(pt - pf),
+                               t_now[i] - t_fix[i])
                 if want_cov and stale[i]:  # the present covariance from the filter at t_fix
                     T = t_now[i] - t_fix[i]
                     qu, qr = _noise(cfg, stats, i, cfg[C_QU], cfg[C_QR])
