@@ -554,6 +554,19 @@ def imm_step(obs, reset, cfg, t_now, odom, vel, psi_f, init, t_fix, m, P, mu, ng
 
 
 @njit(cache=True)
+def insert_by_time(order, nbuf, t_meas, f):
+    """Insert fix f into the buffer order[:nbuf] of fix indices sorted by measurement time t_meas
+    (after any of equal time); returns its position (the filter re-runs from there)."""
+    pos = nbuf
+    while pos > 0 and t_meas[order[pos - 1]] > t_meas[f]:
+        pos -= 1
+    for k in range(nbuf, pos, -1):
+        order[k] = order[k - 1]
+    order[pos] = f
+    return pos
+
+
+@njit(cache=True)
 def imm_filter_fixes(t_meas, z, var, cfg, t_query):
     """Run the filter over fixes given in *arrival* order (times of measurement t_meas (F,),
     values z (F, 5), variances var (F, 5)): a fix older than one already used is inserted where
@@ -578,12 +591,7 @@ def imm_filter_fixes(t_meas, z, var, cfg, t_query):
     w = work()
     nbuf = 0
     for f in range(F):
-        pos = nbuf
-        while pos > 0 and t_meas[order[pos - 1]] > t_meas[f]:
-            pos -= 1
-        for k in range(nbuf, pos, -1):
-            order[k] = order[k - 1]
-        order[pos] = f
+        pos = insert_by_time(order, nbuf, t_meas, f)
         nbuf += 1
         for k in range(pos, nbuf):  # re-run from the snapshot before the inserted fix
             j = order[k]

@@ -53,7 +53,7 @@ import numpy as np
 from numba import njit, prange
 
 from auv_follow_env.dynamics import recompiled
-from controllers._imm import GATE_POS, _wrap, gate_distance, model_update
+from controllers._imm import GATE_POS, _wrap, gate_distance, insert_by_time, model_update
 from controllers._ou0 import (
     NE,
     fix_measurement,
@@ -688,12 +688,7 @@ def limm_filter_fixes(t_meas, z, var, cfg, t_query):
     w = work()
     nbuf = 0
     for f in range(F):
-        pos = nbuf
-        while pos > 0 and t_meas[order[pos - 1]] > t_meas[f]:
-            pos -= 1
-        for k in range(nbuf, pos, -1):
-            order[k] = order[k - 1]
-        order[pos] = f
+        pos = insert_by_time(order, nbuf, t_meas, f)
         nbuf += 1
         for k in range(pos, nbuf):  # re-run from the snapshot before the inserted fix
             j = order[k]
