@@ -177,3 +177,24 @@ def test_warm_and_the_env_recover_from_a_damaged_env_cache(tmp_path):
             "e = gym.make('AUVFollow-Hard-v1'); e.reset(seed=0); e.step(np.zeros(3))")
     res = subprocess.run([sys.executable, "-c", step], cwd=ROOT, env=env, capture_output=True, text=True)
     assert res.returncode == 0 and CACHE_MESSAGE not in res.stderr, res.stderr
+
+
+def test_stopping_never_waits_for_ever_on_a_held_wait_lock():
+    """The CI failure of test_a_signal_to_warm_stops_its_jobs[SIGINT]: Ctrl-C raised inside
+    Popen.poll between its wait lock's acquisition and release left the lock held, and stopping
+    the jobs then waited for ever on it. Now signals are acted on between polls only, and _stop
+    bounds every wait: with the lock held it returns within its bounds (2 s + 5 s) and the job
+    has been killed (a zombie until reaped, since the lock also keeps it from being reaped)."""
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    assert proc._waitpid_lock.acquire(False)  # what the interrupted poll left behind
+    try:
+        t0 = time.monotonic()
+        warm_mod._stop({"job": (proc, t0, open(os.devnull))})
+        assert time.monotonic() - t0 < 10
+        state = Path(f"/proc/{proc.pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        assert state == "Z"  # killed, not yet reaped
+    finally:
+        proc._waitpid_lock.release()
+        proc.kill()
+        proc.wait(10)
+    assert proc.returncode == -signal.SIGTERM  # stopped by _stop's terminate
