@@ -39,16 +39,16 @@ line on stderr (its path and what to do), removed, and the function recompiled a
 from __future__ import annotations
 
 import argparse
-import contextlib
 import glob
 import os
 import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from typing import Any
+
+from auv_follow_env._signals import deferred_signals
 
 __all__ = ["JOBS", "warm", "main", "guard_numba_cache", "CACHE_MESSAGE", "WarmJobFailed"]
 
@@ -157,8 +157,8 @@ class WarmJobFailed(RuntimeError):
 
 
 class _Stopped(BaseException):
-    """SIGTERM or SIGHUP to the command (raised where :func:`_raise_noted` acts on it, as
-    KeyboardInterrupt is for SIGINT)."""
+    """SIGTERM or SIGHUP to the command (raised by its handler, like KeyboardInterrupt for SIGINT;
+    :func:`warm` runs the handlers only between its polls of the jobs)."""
 
 
 def _stop(running: dict) -> None:
@@ -182,42 +182,6 @@ def _stop(running: dict) -> None:
         log.close()
     running.clear()
 
-
-#: names of the stopping signals received and not yet acted on (see :func:`_signals_noted`)
-_noted: list[str] = []
-
-
-def _note(signum, frame) -> None:  # noqa: ARG001 - a signal handler's signature
-    _noted.append(signal.Signals(signum).name)
-
-
-def _raise_noted() -> None:
-    """Act on a noted signal at a safe point: KeyboardInterrupt for SIGINT, :class:`_Stopped` else."""
-    if _noted:
-        name = _noted[0]
-        _noted.clear()
-        raise KeyboardInterrupt if name == "SIGINT" else _Stopped(name)
-
-
-@contextlib.contextmanager
-def _signals_noted(signals: tuple[int, ...]):
-    """Within the block, the ``signals`` (those whose handler is Python's default: SIGINT's
-    KeyboardInterrupt, SIG_DFL for the others; ignored ones stay ignored) are only noted, and
-    :func:`_raise_noted` raises at the loop's safe points. An exception raised straight from a
-    signal handler can land inside ``subprocess``'s internals between a lock's acquisition and
-    its release (CPython's Popen.poll), after which stopping the jobs waited for ever. Outside
-    the main thread (where no handler runs) the block changes nothing."""
-    previous: dict[int, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in signals:
-            handler = signal.getsignal(sig)
-            if handler is signal.default_int_handler or handler == signal.SIG_DFL:
-                previous[sig] = signal.signal(sig, _note)
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
 
 #: job name -> Python code run in a fresh process (argv[1] the env id)
 JOBS: dict[str, str] = {
@@ -256,20 +220,21 @@ def warm(jobs: tuple[str, ...] = tuple(JOBS), env_id: str = "AUVFollow-Hard-v1",
     pending = list(dict.fromkeys(jobs))
     running: dict[str, tuple[subprocess.Popen, float, Any]] = {}
     out: dict[str, float] = {}
-    with _signals_noted((signal.SIGINT,)):
+    # (a handler that raises, run inside subprocess's internals, can leave a Popen's wait lock held:
+    # the signals are acted on between polls, see auv_follow_env._signals)
+    with deferred_signals((signal.SIGINT, signal.SIGTERM, signal.SIGHUP)) as deliver:
         try:
-            _run_jobs(pending, running, out, env_id, processes, verbose)
-            _raise_noted()  # (a Ctrl-C as the last job ended still stops the caller)
+            _run_jobs(pending, running, out, env_id, processes, verbose, deliver)
         finally:  # an error, Ctrl-C or a signal: no job outlives the call
             _stop(running)
     return out
 
 
 def _run_jobs(pending: list[str], running: dict, out: dict[str, float], env_id: str, processes: int,
-              verbose: bool) -> None:
+              verbose: bool, deliver: Any) -> None:
     seen: set[str] = set()
     while pending or running:
-        _raise_noted()
+        deliver()
         while pending and len(running) < processes:
             job = pending.pop(0)
             log = tempfile.TemporaryFile(mode="w+")  # (a pipe could fill up and block the job)
@@ -305,10 +270,12 @@ def main(argv: list[str] | None = None) -> int:
           flush=True)
     t0 = time.perf_counter()
 
+    def stopped(signum, frame):
+        raise _Stopped(signal.Signals(signum).name)
+
+    previous = {sig: signal.signal(sig, stopped) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
-        with _signals_noted((signal.SIGTERM, signal.SIGHUP)):  # (warm notes SIGINT itself)
-            warm(tuple(a.jobs), a.env_id, a.processes)
-            _raise_noted()  # (one that came as the last job ended)
+        warm(tuple(a.jobs), a.env_id, a.processes)
     except ValueError as e:
         p.error(str(e))
     except (KeyboardInterrupt, _Stopped) as e:
@@ -327,6 +294,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"warm: job {e.job!r} failed (exit {e.returncode}): {last.strip()}{hint} (its output: {path})",
               file=sys.stderr, flush=True)
         return 1
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     print(f"done in {time.perf_counter() - t0:.1f} s", flush=True)
     return 0
 

@@ -101,6 +101,26 @@ def test_spatial_median_of_known_configurations():
     assert e == pytest.approx(10.0 / 4, rel=1e-3)
 
 
+def test_spatial_median_does_not_depend_on_the_thread_count():
+    """The floor per step is a median of 1,000s of particles: its bits must not depend on how many
+    threads numba has (a host's core count), or cached floors would not reproduce elsewhere."""
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba has one thread here")
+    rng = np.random.default_rng(3)
+    points = rng.standard_normal((4000, 2)) * [3.0, 0.5] + [1e3, -2e3]  # (large coordinates: rounding shows)
+    before = numba.get_num_threads()
+    try:
+        got = {}
+        for k in (1, 2):
+            numba.set_num_threads(k)
+            got[k] = _median(points)
+    finally:
+        numba.set_num_threads(before)
+    assert got[1].tolist() == got[2].tolist()  # exact: one process, one host
+
+
 def test_one_mode_leader_matches_the_kalman_floor():
     """A leader that only cruises (mean cruise 1e4 s: no switch in an episode) has speed
     = command + an OU wobble and turn rate = an OU wobble: the v1 target model, whose floor the

@@ -471,11 +471,12 @@ def test_user_controller_class_goes_on_the_leaderboard(tmp_path, capsys):
 
 @pytest.mark.parametrize("text,needle", [("nosuchmodule_xyz:Cls", "cannot be imported"),
                                          ("examples.user_controller:Nope", "has no class 'Nope'")])
-def test_user_controller_errors_name_the_policy(text, needle, capsys):
+def test_user_controller_errors_name_the_policy(text, needle, capsys, tmp_path):
     with pytest.raises(ValueError, match=needle):
         parse_policy(text)
     with pytest.raises(SystemExit) as e:
-        main(["benchmark", "--tiers", "S1", "--seeds", "1000", "--no-progress", "--policies", text, "--out", "/tmp/x"])
+        main(["benchmark", "--tiers", "S1", "--seeds", "1000", "--no-progress", "--policies", text,
+              "--out", str(tmp_path / "x")])
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and len(err) == 1 and text in err[0]
 
@@ -638,6 +639,10 @@ def test_xss_report_runs_no_script_in_a_browser(bench, tmp_path):
             "source": "window.__alerts=[];window.alert=function(m){window.__alerts.push(String(m));};"})
         driver.set_page_load_timeout(120)
         driver.get(page.resolve().as_uri())
+        from selenium.webdriver.support.ui import WebDriverWait
+
+        # (the checks below would pass on a page not yet built: wait for its table first)
+        WebDriverWait(driver, 60).until(lambda d: d.find_elements(By.CSS_SELECTOR, "table.leaderboard td"))
         assert driver.execute_script("return window.__alerts") == []
         assert driver.find_elements(By.CSS_SELECTOR, "img") == []
         assert driver.find_elements(By.CSS_SELECTOR, "a[href^='javascript']") == []

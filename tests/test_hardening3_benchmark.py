@@ -148,11 +148,12 @@ def test_other_numbers_that_could_overflow_or_never_end(monkeypatch, capsys):
 # --- D5 floor_label_collision.py: the floors' labels are reserved -----------------------------------
 
 @pytest.mark.parametrize("label", ["control floor", "Information  FLOOR", " CONTROL floor"])
-def test_floor_labels_are_reserved(label, monkeypatch, capsys):
+def test_floor_labels_are_reserved(label, monkeypatch, capsys, tmp_path):
     """floor_label_collision.py: a policy labelled 'control floor' was merged into the floor's row."""
     _no_work(monkeypatch)
     code, _, err = _cli(["benchmark", *QUICK, "--floors", "--policies", "PROPOSED",
-                         f"{label}=examples.user_controller:GoToReference", "--out", "/tmp/never-written"], capsys)
+                         f"{label}=examples.user_controller:GoToReference", "--out", str(tmp_path / "never-written")],
+                         capsys)
     assert code == 2 and len(err) == 1 and "reserved for the floors" in err[0] and " ".join(label.split()) in err[0]
     with pytest.raises(ValueError, match="reserved"):
         B.benchmark(["PROPOSED", f"{label}=examples.user_controller:GoToReference"], ["Hard"], progress=False)

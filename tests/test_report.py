@@ -98,7 +98,10 @@ def test_report_page_loads_without_console_errors_and_shows_the_leaderboard(repo
         assert sorted(r.get_attribute("data-policy") for r in rows) == ["PID", "PRED_ONLY", "PROPOSED", "PROPOSED_KF"]
         assert all(r.is_displayed() for r in rows)
         assert driver.execute_script("return typeof window.Plotly") == "object"
-        n_plots = driver.execute_script("return document.querySelectorAll('.js-plotly-plot').length")
+        # (the figures follow the table in the page: wait for them too, then count them exactly)
+        n_plots = WebDriverWait(driver, 60).until(
+            lambda d: d.execute_script("return document.querySelectorAll('.js-plotly-plot').length") >= 7
+            and d.execute_script("return document.querySelectorAll('.js-plotly-plot').length"))
         assert n_plots == 7
         errors = [e for e in driver.get_log("browser") if e["level"] in ("SEVERE", "ERROR")]
         assert not errors, errors

@@ -11,8 +11,10 @@ from agents.benchmark.sweep import SweepConfig, sweep  # noqa: E402
 from agents.training.loading import load_agent  # noqa: E402
 
 
-def test_two_trial_sweep_completes_and_resumes_after_a_crash(tmp_path):
+def test_two_trial_sweep_completes_and_resumes_after_a_crash(tmp_path, monkeypatch):
     import ray
+
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)  # a local instance of its own, whatever the host runs
 
     marker = tmp_path / "fail_once"
     marker.touch()

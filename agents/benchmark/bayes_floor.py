@@ -333,8 +333,13 @@ def _medians(pose, p, pdx, pdy, out):
         c, s = math.cos(pose[i, 2]), math.sin(pose[i, 2])
         rx[i] = pose[i, 0] + c * pdx - s * pdy
         ry[i] = pose[i, 1] + s * pdx + c * pdy
-    mx = rx.mean()
-    my = ry.mean()
+    mx = 0.0  # (a serial sum: rx.mean() here became a parallel reduction, its bits set by the thread count)
+    my = 0.0
+    for i in range(n):
+        mx += rx[i]
+        my += ry[i]
+    mx /= n
+    my /= n
     for _ in range(WEISZFELD_ITERS):
         sw = 0.0
         sx = 0.0

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import json
 import platform
+import signal
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,6 +16,7 @@ import pandas as pd
 
 import auv_follow_env  # noqa: F401  (registers the ids)
 from agents.benchmark.leaderboard import leaderboard_markdown, plot_leaderboard
+from auv_follow_env._signals import deferred_signals
 
 
 def provenance(config: Mapping[str, Any]) -> dict[str, Any]:
@@ -66,23 +68,6 @@ class OutputWriteError(OSError):
     files in the folder are kept (the message names the folder and the reason)."""
 
 
-@contextlib.contextmanager
-def _sigint_deferred():
-    """Hold back SIGINT (Ctrl-C) inside the block: it is delivered when the block ends (main
-    thread on POSIX; elsewhere the block runs as it is)."""
-    import signal
-    import threading
-
-    block = hasattr(signal, "pthread_sigmask") and threading.current_thread() is threading.main_thread()
-    if block:
-        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    try:
-        yield
-    finally:
-        if block:
-            signal.pthread_sigmask(signal.SIG_SETMASK, old)
-
-
 def replace_set(stage: Path, out: Path, names: Sequence[str]) -> dict[str, Path]:
     """Move the files ``names`` from ``stage`` into ``out`` as one set: the files of the same
     names already in ``out`` are moved aside first and put back if any move fails or is
@@ -103,7 +88,7 @@ def replace_set(stage: Path, out: Path, names: Sequence[str]) -> dict[str, Path]
     aside = Path(tempfile.mkdtemp(prefix=".benchmark-previous-", dir=out))
     moved: list[str] = []
     placed: list[str] = []
-    with _sigint_deferred():
+    with deferred_signals((signal.SIGINT,)):  # (delivered when the files are in place)
         try:
             for name in names:
                 if os.path.lexists(out / name):
@@ -132,7 +117,7 @@ def replace_set(stage: Path, out: Path, names: Sequence[str]) -> dict[str, Path]
                 raise OutputWriteError(f"cannot write into {out} ({exc.strerror or _first_line(exc)}): its previous "
                                        "files are kept") from exc
             raise
-    shutil.rmtree(aside, ignore_errors=True)
+        shutil.rmtree(aside, ignore_errors=True)  # (before a held-back Ctrl-C is delivered)
     return {name: out / name for name in names}
 
 

@@ -257,7 +257,8 @@ def _init_ray(address: str | None) -> None:
     if address:
         ray.init(address=address, log_to_driver=False)
     else:
-        ray.init(num_cpus=os.cpu_count() or 1, include_dashboard=False, log_to_driver=False)
+        # ("local": a new local instance, never one a `ray start` on this host left running)
+        ray.init(address="local", num_cpus=os.cpu_count() or 1, include_dashboard=False, log_to_driver=False)
 
 
 def sweep(cfg: SweepConfig) -> pd.DataFrame:
