@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 
 import numpy as np
 import pytest
@@ -412,3 +413,17 @@ def test_yaw_from_a_classical_law_replaces_only_the_yaw_moment():
         ObservationBuilder(spec, mode="residual", controller="PROPOSED_KF_DOB", yaw_from="PROPOSED_KF_DOB")
     with pytest.raises(ValueError, match=r"yaw_from='LQR' is invalid"):
         ObservationBuilder(spec, yaw_from="LQR")
+
+
+def test_training_log_error_mean_skips_episodes_without_a_steady_state():
+    """progress.csv's ep_true_steady_mean_m: episodes that ended before t = 10 s have no steady
+    error (NaN); the mean is over the others, and a batch with none is NaN without a numpy warning."""
+    import warnings
+
+    from agents.training.batched_ppo import _finite_mean
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _finite_mean([0.02, float("nan"), 0.04]) == pytest.approx(0.03)
+        assert math.isnan(_finite_mean([float("nan"), float("nan")]))
+        assert math.isnan(_finite_mean([]))

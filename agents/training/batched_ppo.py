@@ -643,6 +643,12 @@ def _episode_errors(met: dict[str, Any]) -> list[float]:
     return np.asarray(met.get("steady_mean", ()), dtype=float).reshape(-1).tolist()
 
 
+def _finite_mean(x: list[float]) -> float:
+    """The mean of the finite values of ``x``; NaN (without numpy's empty-slice warning) if none."""
+    finite = [v for v in x if math.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("nan")
+
+
 def _iqm(x: np.ndarray) -> float:
     """Interquartile mean; a missing value (NaN: e.g. an episode that ended before its steady
     state) counts as the worst (inf), so many of them make the IQM inf rather than hide."""
@@ -901,7 +907,8 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
             row = {"steps": steps, "train_seconds": round(elapsed, 2),
                    "steps_per_s": round((steps - start_steps) / max(elapsed, 1e-9), 1),
                    "ep_return_mean": float(np.mean(ep_returns)) if ep_returns else float("nan"),
-                   "ep_true_steady_mean_m": float(np.nanmean(ep_errors)) if ep_errors else float("nan"),
+                   # (episodes that ended before the steady state have no steady error: left out)
+                   "ep_true_steady_mean_m": _finite_mean(ep_errors),
                    "episodes": len(ep_returns), **stats, "learning_rate": opt.param_groups[0]["lr"],
                    "dF_u_mean_N": float(df_sum[0] / max(df_n, 1))}
             ep_returns.clear()
