@@ -12,7 +12,9 @@ computes the information floor (agents/benchmark/floors.py: the Kalman floor on 
 Bayes particle floor on the Leader tiers, cached in results/tmp/bench-cache), and draws them as
 horizontal lines: a curve that flattens above them has converged to something worse; one still
 falling was stopped early.
-Writes the PNG and a Markdown table (final IQM per run, steps, wall-clock minutes).
+Writes the PNG and a Markdown table (final IQM per run, steps, wall-clock minutes). Runs trained
+with ``env_kwargs`` (ablations on a changed env, e.g. results/spin_ablation_hard.md's) are skipped:
+the id's references are not theirs.
 """
 
 from __future__ import annotations
@@ -120,10 +122,17 @@ def main(argv: list[str] | None = None) -> int:
     for r in runs:
         cfg = yaml.safe_load((r / "config.yaml").read_text())
         run = cfg.get("run", {})
+        if run.get("env_kwargs"):  # (an ablation on a changed env: the id's references would not be its own)
+            print(f"skipped {r.name}: trained on {run.get('env_id')} with env_kwargs {run['env_kwargs']}",
+                  file=sys.stderr)
+            continue
         ev = with_parent_curve(r, run, pd.read_csv(r / "eval.csv"))
         seeds = cfg.get("eval_seeds", [500, 531])
         info.append({"run": r, "env": run.get("env_id"), "mode": run.get("mode"), "cfg": cfg, "eval": ev,
                      "seeds": list(range(int(seeds[0]), int(seeds[-1]) + 1))})
+    if not info:
+        print("--runs: every run was trained on a changed env (env_kwargs): nothing to draw", file=sys.stderr)
+        return 2
     envs = list(dict.fromkeys(i["env"] for i in info))
     fig, axes = plt.subplots(len(envs), 1, figsize=(10.0, 4.6 * len(envs)), squeeze=False)
     axes = axes.T

@@ -338,6 +338,21 @@ def test_learning_curve_of_a_resumed_run_starts_with_its_parent(tmp_path):
     assert method_name("bppo-Easy-s0-scratch") == "bppo-Easy-s0-scratch"
 
 
+def test_learning_curves_skip_runs_trained_on_a_changed_env(tmp_path, capsys):
+    """A run trained with env_kwargs (an ablation) would be drawn against its id's references, which
+    are not its own: it is skipped by name; with nothing else to draw, a usage error (exit 2)."""
+    from experiments import learning_curves
+
+    run = tmp_path / "bppo11-Hard-easylink-s0"
+    run.mkdir()
+    pd.DataFrame({"steps": [0], "true_steady_iqm_m": [1.0]}).to_csv(run / "eval.csv", index=False)
+    (run / "config.yaml").write_text("run:\n  env_id: AUVFollow-Hard-v1\n  env_kwargs: {max_depth_m: 3.0}\n")
+    assert learning_curves.main(["--runs", str(run), "--out", str(tmp_path / "c.png")]) == 2
+    err = capsys.readouterr().err
+    assert "skipped bppo11-Hard-easylink-s0" in err and "env_kwargs" in err and "nothing to draw" in err
+    assert not (tmp_path / "c.png").exists()
+
+
 def test_smoothness_env_kwarg_changes_the_env_and_is_recorded(tmp_path, capsys):
     """experiments.smoothness --env-kwarg: the value is read as YAML (.inf is infinity), the env of
     every policy is the changed one (its controllers built for the changed task), the report says
