@@ -683,7 +683,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
                           builder=resolved["observation"], random_phase=bool(hp["random_phase"]), parallel=False)
     D = env.obs_dim
     net = _build_net(D, pk)
-    opt = torch.optim.Adam(net.parameters(), lr=float(hp["learning_rate"]), eps=1e-5)
+    opt = _adam(net, float(hp["learning_rate"]))
     lr0 = float(hp["learning_rate"])
     obs_rms = _RunningMeanStd((D,), window=int(hp["obs_norm_window"]))
     ret_rms = _RunningMeanStd((), window=int(hp["reward_norm_window"]))
@@ -706,8 +706,8 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
             raise ValueError(f"resume_from={cfg.resume_from!r} has another observation width or policy_kwargs")
         net.load_state_dict(data["state_dict"])
         opt.load_state_dict(data["optimizer"])
-        for g in opt.param_groups:
-            g["lr"] = float(hp["learning_rate"])
+        for g in opt.param_groups:  # (a checkpoint of the looped Adam resumes on the fused kernel)
+            g["lr"], g["fused"], g["foreach"] = float(hp["learning_rate"]), True, None
         start_steps = int(data["steps_done"])
         r = data["ret_rms"]
         ret_rms.mean, ret_rms.var, ret_rms.count = r["mean"], r["var"], r["count"]
@@ -1043,7 +1043,7 @@ def _distill_update(net: Any, opt: Any, hp: dict, obs, priv, teach, ret, valid) 
                                 f"{vl.item()!r})")
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(net.parameters(), max_norm)
+            torch.nn.utils.clip_grad_norm_(net.parameters(), max_norm, foreach=True)
             opt.step()
             logs["policy_loss"].append(bc.item())
             logs["value_loss"].append(vl.item())
@@ -1051,6 +1051,16 @@ def _distill_update(net: Any, opt: Any, hp: dict, obs, priv, teach, ret, valid) 
     out.update(entropy=float("nan"), approx_kl=float("nan"), clip_frac=float("nan"),
                std_mean=float(torch.exp(net.log_std).mean().item()))
     return out
+
+
+def _adam(net: Any, lr: float) -> Any:
+    """Adam as SB3 configures it for PPO (eps 1e-5), with torch's fused CPU kernel: one pass over
+    all parameters instead of a Python loop over the 14 tensors (1.2 ms of a 4096-sample minibatch
+    step on our 2-core machines, 0.4 ms fused). Same update rule; the last bits may differ from
+    the looped form."""
+    import torch
+
+    return torch.optim.Adam(net.parameters(), lr=lr, eps=1e-5, fused=True)
 
 
 def _update(net: Any, opt: Any, hp: dict, obs, priv, first, act, logp_old, adv, ret, valid, h0,
@@ -1114,7 +1124,7 @@ def _update(net: Any, opt: Any, hp: dict, obs, priv, first, act, logp_old, adv, 
                                 f"{vl.item()!r}, entropy {ent.item()!r})")
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(net.parameters(), max_norm)
+            torch.nn.utils.clip_grad_norm_(net.parameters(), max_norm, foreach=True)
             opt.step()
             with torch.no_grad():
                 kl = ((ratio - 1) - torch.log(ratio)).mean().item()
