@@ -1055,9 +1055,9 @@ def _distill_update(net: Any, opt: Any, hp: dict, obs, priv, teach, ret, valid) 
 
 def _adam(net: Any, lr: float) -> Any:
     """Adam as SB3 configures it for PPO (eps 1e-5), with torch's fused CPU kernel: one pass over
-    all parameters instead of a Python loop over the 14 tensors (1.2 ms of a 4096-sample minibatch
-    step on our 2-core machines, 0.4 ms fused). Same update rule; the last bits may differ from
-    the looped form."""
+    all parameters instead of a Python loop over the parameter tensors (under torch's profiler
+    1.2 ms against 0.4 ms per 4096-sample minibatch step; 3-11 % of a whole update). Same update
+    rule; the last bits may differ from the looped form."""
     import torch
 
     return torch.optim.Adam(net.parameters(), lr=lr, eps=1e-5, fused=True)
