@@ -376,6 +376,35 @@ def test_styles_beyond_the_palette_stay_unique():
     assert len(set(colors)) == 60
 
 
+def test_many_learned_policies_on_one_tier_keep_distinct_colours():
+    """Eighteen learned and eight classical policies on one tier (Easy's count of the committed
+    leaderboard, plus eight): any two, drawn by default or not, differ by at least 90 in the
+    redmean distance. With only the family's 28-colour palette to pick from, the greedy choice
+    left two learned colours 52 apart on the committed board."""
+    import itertools
+
+    board = _board({"T": [*((f"C{k}", "classical", 0.02 + 0.001 * k) for k in range(8)),
+                          *((f"L{k}", "learned", 0.03 + 0.001 * k) for k in range(18))]})
+    st = R._policy_styles(board)
+    worst = min((R._distance(st[p].color, st[q].color), p, q) for p, q in itertools.combinations(st, 2))
+    assert worst[0] >= 90, worst
+
+
+def test_long_legend_entries_are_wrapped_and_their_rows_get_the_room():
+    """A 130-character label becomes lines of at most LEGEND_WIDTH characters joined by <br>, its
+    words in order; the legend is as tall as its rows: 22 px for a one-line row, 15 px for each
+    extra line of the row's longest entry, plus 30 px (by hand, three columns: a first row of
+    entries with 1, 3 and 1 lines, 22 + 2 * 15 = 52 px, a second of one line, 22 px; 52 + 22 + 30 = 104)."""
+    label = " ".join(["PPO scratch + privileged critic, action-rate 0.3, yaw moment from PROPOSED_KF_DOB"] * 2)[:130]
+    name = R._legend_name(label)
+    lines = name.split("<br>")
+    assert len(lines) > 1 and all(len(line) <= R.LEGEND_WIDTH for line in lines)
+    assert " ".join(lines) == label.replace("&", "&amp;")
+    three = "<br>".join(["x"] * 3)
+    assert R._legend(["a", three, "b", "c"], columns=3)[1] == 104
+    assert R._legend(["a", "b"], columns=3)[1] == 22 + 30
+
+
 def test_gap_closed_is_explained_with_the_folder_own_numbers():
     """Information floor 0.0173, best classical 0.0186, a policy at 0.5: gap closed = (0.0186 - 0.5) /
     (0.0186 - 0.0173) = -0.4814 / 0.0013 = -370.31 (by hand); the page says what it is and why it is so low."""

@@ -79,6 +79,7 @@ _HUES = {"floor": (0.0, 0.0), "classical": (0.0, 50.0), "learned": (95.0, 265.0)
 _TIME_COLUMNS = ("time", "follower_x", "follower_y", "target_x", "target_y", "recv_x", "recv_y", "F_u", "F_v",
                  "F_r", "along_track", "cross_track")
 _OPTIONAL_TRACE_COLUMNS = ("own_ref_x", "own_ref_y", "est_x", "est_y", "packet_age")
+_GENERATED = 48  # generated colours per family beside its palette (candidates for the policies drawn on a click)
 _DISTINCT = 150.0  # a default-drawn policy's colour differs at least this much from the others on its tiers
 _BIG = 1e100  # numbers of the leaderboard stay below this (their differences stay finite)
 _BIG_TRACE = 1e9  # a recorded episode's positions [m], forces [N] and times [s] stay below this
@@ -142,8 +143,9 @@ def _policy_styles(board: pd.DataFrame, shown_per_family: int = SHOWN_PER_FAMILY
     and best first, each take the first free colour of the family's palette (strong colours
     first) that differs by :data:`_DISTINCT` from the colours of the default-drawn policies (of
     any family but the floors, which are also told by their dashes and diamonds) on its tiers,
-    else the most different of the next few; each of the others takes the free colour farthest
-    from every colour already handed out on its tiers (all of them share the tables)."""
+    else the most different of the next few; each of the others takes the free colour (of the
+    palette or of :data:`_GENERATED` generated hues of the family) farthest from every colour
+    already handed out on its tiers (all of them share the tables)."""
     m = "true_steady_mean_iqm"
     family = {}
     for p, k in zip(board["policy"], board["kind"], strict=True):
@@ -169,8 +171,10 @@ def _policy_styles(board: pd.DataFrame, shown_per_family: int = SHOWN_PER_FAMILY
     for fi, f in enumerate(_FAMILIES):
         members = sorted((p for p in family if family[p] == f),
                          key=lambda p: (place[p], float(np.mean(ratio[p])) if ratio[p] else math.inf))
-        free = list(_PALETTES[f])
-        extra = 0
+        # the palette first (the default-drawn policies take its strong colours), then generated hues
+        # of the family, from which the policies drawn on a click pick the most distinct
+        free = list(dict.fromkeys([*_PALETTES[f], *(_generated(f, k) for k in range(_GENERATED))]))
+        extra = _GENERATED
         chosen: dict[str, str] = {}
         # floors: the information floor (the control floor, one to three decades below everything, is a
         # click away: drawn, it would squeeze the policies into a corner of every log axis)
@@ -219,7 +223,7 @@ def _wrapped(value: Any, width: int = LABEL_WIDTH) -> str:
     characters (plotly's ``<br>``)."""
     import textwrap
 
-    return "<br>".join(_txt(line) for line in textwrap.wrap(str(value), width)) or _txt(value)
+    return "<br>".join(_txt(line) for line in textwrap.wrap(str(value), width, break_on_hyphens=False)) or _txt(value)
 
 
 # --- checking what the folder holds ----------------------------------------------------------
@@ -434,14 +438,30 @@ def binned_breakdown(episodes: pd.DataFrame, condition: str, metric: str = "true
 
 # --- figures -----------------------------------------------------------------------------
 
-def _legend(n: int, columns: int = 3) -> tuple[dict, int]:
-    """A legend under the plot in ``columns`` columns (long labels fit) and the height it takes. The
-    columns take 90 % of the figure's width: the legend starts at the plot area's left edge, which
-    the axis labels push right, so full-width columns ran past the figure's right edge."""
-    rows = math.ceil(n / columns)
+#: characters per line of a legend entry (the narrowest legend: three columns on a 1,400 px page at
+#: plotly's 11 px font, about 6.5 px per character). Plotly does not wrap legend entries itself, and
+#: unwrapped long labels ran past the figure's right edge. One width for every chart: a policy's
+#: entry reads the same in each, and the page's colour checks match traces by name.
+LEGEND_WIDTH = 48
+
+
+def _legend_name(policy: Any) -> str:
+    """A policy's legend entry: its label, wrapped at :data:`LEGEND_WIDTH`."""
+    return _wrapped(policy, LEGEND_WIDTH)
+
+
+def _legend(names: Sequence[str], columns: int = 3) -> tuple[dict, int]:
+    """A legend under the plot in ``columns`` columns and the height it takes, for the entries
+    ``names`` (wrapped by :func:`_legend_name`, in legend order: a row is as tall as its longest
+    entry). The columns take 90 % of the figure's width: the legend starts at the plot area's left
+    edge, which the axis labels push right, so full-width columns ran past the figure's right edge.
+    ``maxheight`` 1: plotly caps a horizontal legend at half the figure's height by default and
+    scrolls the rest out of sight."""
+    lines = [str(n).count("<br>") + 1 for n in names]
+    rows = [max(lines[i:i + columns]) for i in range(0, len(lines), columns)]
     return ({"orientation": "h", "yanchor": "top", "y": -0.08, "x": 0.0, "xanchor": "left",
              "entrywidth": 0.9 / columns, "entrywidthmode": "fraction", "font": {"size": 11},
-             "traceorder": "normal"}, 22 * rows + 30)
+             "traceorder": "normal", "maxheight": 1.0}, sum(22 + 15 * (k - 1) for k in rows) + 30)
 
 
 def _buttons(visible: list, lift: float) -> list[dict]:
@@ -473,7 +493,7 @@ def _fig_leaderboard(board: pd.DataFrame, styles: dict[str, _Style]):
             p = r["policy"]
             st = styles[p]
             fig.add_trace(go.Scatter(
-                x=[r[f"{m}_iqm"]], y=[_wrapped(p)], mode="markers", name=_txt(p), legendgroup=st.group,
+                x=[r[f"{m}_iqm"]], y=[_wrapped(p)], mode="markers", name=_legend_name(p), legendgroup=st.group,
                 showlegend=p not in seen, legendrank=st.rank, visible=st.visible,
                 marker={"color": st.color, "size": 11, "symbol": "diamond" if st.family == "floor" else "circle",
                         "line": {"color": "#222", "width": 0.5}},
@@ -489,7 +509,7 @@ def _fig_leaderboard(board: pd.DataFrame, styles: dict[str, _Style]):
     fig.update_xaxes(title_text="IQM of the steady-state error [m] (log scale)", row=len(tiers), col=1)
     # one column from the figure's left edge: the labels are long and the tick labels already take the
     # left part of the plot area, so two columns there overran the figure's right edge
-    _, extra = _legend(len(seen), columns=1)
+    _, extra = _legend([_legend_name(p) for p in sorted(seen, key=lambda q: styles[q].rank)], columns=1)
     legend = {"orientation": "v", "yanchor": "top", "x": 0.0, "xref": "container", "xanchor": "left",
               "font": {"size": 11}, "traceorder": "normal"}
     plot = 60 * len(tiers) + 19 * sum(sizes)
@@ -517,7 +537,7 @@ def _fig_breakdown(episodes: pd.DataFrame, condition: str, label: str, styles: d
         groups = sorted(bd.groupby("policy", sort=False), key=lambda g: styles[g[0]].rank)
         for pol, d in groups:
             st = styles[pol]
-            fig.add_trace(go.Scatter(x=d["bin_center"], y=d["iqm"], mode="lines+markers", name=_txt(pol),
+            fig.add_trace(go.Scatter(x=d["bin_center"], y=d["iqm"], mode="lines+markers", name=_legend_name(pol),
                                      legendgroup=st.group, showlegend=pol not in seen, legendrank=st.rank,
                                      visible=st.visible,
                                      line={"color": st.color, "dash": st.dash, "width": 2},
@@ -528,7 +548,7 @@ def _fig_breakdown(episodes: pd.DataFrame, condition: str, label: str, styles: d
         fig.update_xaxes(title_text=_txt(label), row=1, col=c)
         fig.update_yaxes(type="log", row=1, col=c)
     fig.update_yaxes(title_text="IQM of the steady-state error [m]", row=1, col=1)
-    legend, extra = _legend(len(seen), columns=2)
+    legend, extra = _legend([_legend_name(p) for p in sorted(seen, key=lambda q: styles[q].rank)], columns=2)
     legend["y"] = -90 / 330
     fig.update_layout(height=330 + 150 + extra, legend=legend, margin={"l": 10, "r": 10, "t": 80, "b": extra + 70},
                       updatemenus=_buttons([tr.visible for tr in fig.data], 50 / 330))
@@ -550,7 +570,8 @@ def _fig_forces(runs: dict[str, pd.DataFrame], styles: dict[str, _Style], shown:
     limits = next(iter(runs.values())).attrs.get("force_limits", (np.nan,) * 3)
     for pol, df in runs.items():
         for j, (n, _) in enumerate(names, start=1):
-            fig.add_trace(go.Scatter(x=_f4(df["time"]), y=_f4(df[n]), name=_txt(pol), legendgroup=styles[pol].group,
+            fig.add_trace(go.Scatter(x=_f4(df["time"]), y=_f4(df[n]), name=_legend_name(pol),
+                                     legendgroup=styles[pol].group,
                                      showlegend=j == 1, legendrank=styles[pol].rank,
                                      visible=True if pol in shown else "legendonly",
                                      line={"color": styles[pol].color, "width": 1.3},
@@ -561,7 +582,7 @@ def _fig_forces(runs: dict[str, pd.DataFrame], styles: dict[str, _Style], shown:
             fig.add_hline(y=sgn * lim, line_dash="dot", line_color="black", line_width=1, row=j, col=1)
         fig.update_yaxes(title_text=f"{n} [{unit}]", row=j, col=1)
     fig.update_xaxes(title_text="time [s]", row=3, col=1)
-    legend, extra = _legend(len(runs))
+    legend, extra = _legend([_legend_name(p) for p in sorted(runs, key=lambda q: styles[q].rank)])
     legend["y"] = -0.1
     fig.update_layout(height=640 + extra, legend=legend, margin={"l": 10, "r": 10, "t": 40, "b": extra + 30})
     return fig
@@ -575,7 +596,8 @@ def _fig_track(runs: dict[str, pd.DataFrame], styles: dict[str, _Style], shown: 
                         vertical_spacing=0.1)
     for pol, df in runs.items():
         for j, col in enumerate(("along_track", "cross_track"), start=1):
-            fig.add_trace(go.Scatter(x=_f4(df["time"]), y=_f4(df[col]), name=_txt(pol), legendgroup=styles[pol].group,
+            fig.add_trace(go.Scatter(x=_f4(df["time"]), y=_f4(df[col]), name=_legend_name(pol),
+                                     legendgroup=styles[pol].group,
                                      showlegend=j == 1, legendrank=styles[pol].rank,
                                      visible=True if pol in shown else "legendonly",
                                      line={"color": styles[pol].color, "width": 1.3},
@@ -584,7 +606,7 @@ def _fig_track(runs: dict[str, pd.DataFrame], styles: dict[str, _Style], shown: 
     fig.update_yaxes(title_text="along [m] (+: ahead)", row=1, col=1)
     fig.update_yaxes(title_text="cross [m] (+: to port)", row=2, col=1)
     fig.update_xaxes(title_text="time [s]", row=2, col=1)
-    legend, extra = _legend(len(runs))
+    legend, extra = _legend([_legend_name(p) for p in sorted(runs, key=lambda q: styles[q].rank)])
     legend["y"] = -0.14
     fig.update_layout(height=520 + extra, legend=legend, margin={"l": 10, "r": 10, "t": 40, "b": extra + 30})
     return fig
