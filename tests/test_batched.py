@@ -363,6 +363,53 @@ def test_observation_statistics_with_a_window_forget_old_samples():
         check_bppo_hyperparams({"obs_norm_window": -5})
 
 
+def test_uncentered_statistics_keep_the_mean_square():
+    """An uncentred column keeps mean 0 and its "variance" is the running mean square. No window:
+    samples 1, 3, then 5: mean square (1 + 9 + 25) / 3 = 35/3, while the centred column beside it
+    has mean 3 and variance 8/3. Window 1: the first batch's mean square 5 counts as one sample, so
+    the second batch (25) gives (5 + 25) / 2 = 15 (by hand; the initial count of 1e-4 aside)."""
+    from agents.training.batched_ppo import _RunningMeanStd, check_bppo_hyperparams
+
+    r = _RunningMeanStd((2,), uncentered=[1])
+    r.update(np.array([[1.0, 1.0], [3.0, 3.0]]))
+    r.update(np.array([[5.0, 5.0]]))
+    assert r.mean == pytest.approx([3.0, 0.0], abs=1e-3) and r.var == pytest.approx([8 / 3, 35 / 3], rel=1e-4)
+    w = _RunningMeanStd((2,), window=1, uncentered=[1])
+    w.update(np.array([[1.0, 1.0], [3.0, 3.0]]))
+    w.update(np.array([[5.0, 5.0]]))
+    assert w.mean[1] == 0.0 and w.var[1] == pytest.approx(15.0, rel=1e-4)
+    with pytest.raises(ValueError, match=r"obs_error_norm='center' is invalid.*centered.*scaled"):
+        check_bppo_hyperparams({"obs_error_norm": "center"})
+
+
+def test_scaled_error_fields_are_never_centred_in_training_or_evaluation(tmp_path):
+    """obs_error_norm=scaled: the run's statistics hold mean 0 for ref_dx, ref_dy, est_ref_dx and
+    est_ref_dy (columns 12, 13 and 20 + 7, 20 + 8 of the v1 estimator observation) and a mean square
+    > 0; every other column is centred as before; config.yaml records the choice; the loaded agent
+    maps a zero reference error to a zero input, as training did."""
+    import yaml
+
+    from agents.cli import main
+    from agents.training.loading import load_agent
+    from agents.training.obs_stats import read_obs_stats
+
+    assert main(["train", "--algo", "bppo", "--env", "AUVFollow-Easy-v1", "--mode", "scratch", "--n-envs", "8",
+                 "--hp", "n_steps=8", "--hp", "batch_size=32", "--hp", "obs_error_norm=scaled", "--timesteps", "128",
+                 "--checkpoint-freq", "0", "--eval-freq", "0", "--no-final-eval", "--no-progress", "--no-tensorboard",
+                 "--out", str(tmp_path), "--run-name", "r"]) == 0
+    cfg = yaml.safe_load((tmp_path / "r" / "config.yaml").read_text())
+    assert cfg["training"]["obs_error_norm"] == "scaled" and cfg["training"]["obs_error_columns"] == [12, 13, 27, 28]
+    st = read_obs_stats(tmp_path / "r" / "vecnormalize.json")
+    cols = [12, 13, 27, 28]
+    assert (st.mean[cols] == 0.0).all() and (st.var[cols] > 0).all()
+    others = np.setdiff1d(np.arange(st.mean.size), cols)
+    assert np.count_nonzero(st.mean[others]) > 10  # the rest centred as usual
+    agent = load_agent(tmp_path / "r")
+    x = np.ones((1, st.mean.size))
+    x[:, cols] = 0.0
+    assert (agent.normalize(x)[0, cols] == 0.0).all()
+
+
 def test_the_residual_section_sits_between_default_and_the_env_section(tmp_path):
     from agents.training.config import load_hyperparams
 

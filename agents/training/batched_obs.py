@@ -235,6 +235,17 @@ class ObservationBuilder:
                 **({"action_filter": self.action_filter} if self.action_filter < 1.0 else {}),
                 **({"yaw_from": self.yaw_from} if self.yaw_from is not None else {})}
 
+    @property
+    def error_indices(self) -> list[int]:
+        """Columns of the agent's observation that are reference errors, zero on the reference:
+        the raw ``ref_dx``, ``ref_dy`` and, with the estimator block, ``est_ref_dx``, ``est_ref_dy``."""
+        names = [f.name for f in LAYOUTS[self.obs_width]]
+        cols = [names.index("ref_dx"), names.index("ref_dy")]
+        if self.observation == "estimator":
+            at = self.obs_width + (3 if self.include_base_action else 0)
+            cols += [at + ESTIMATOR_INDEX["est_ref_dx"], at + ESTIMATOR_INDEX["est_ref_dy"]]
+        return cols
+
     def reset(self) -> None:
         """Forget everything: the next :meth:`observe` starts every env afresh."""
         self._n = None

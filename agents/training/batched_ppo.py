@@ -32,6 +32,17 @@ std at 1-2 m for a 0.02 m steady error. A fixed physical reward scale was the al
 window needs no per-tier constant and follows the policy as it improves. Both windows are
 recorded in ``config.yaml`` (``training:``) and the observation window in ``vecnormalize.json``.
 
+**Reference errors scaled, not centred** (``obs_error_norm``: ``centered``, the default and what
+every committed run before it used, or ``scaled``). A forgetting mean has a drift mode: the
+running mean of the reference-error fields (``ref_dx``, ``ref_dy``, ``est_ref_dx``, ``est_ref_dy``;
+zero = on the reference) follows the policy's own steady offset, so an offset the policy settles
+into soon reads as zero error. One Medium run drifted so from 0.31 m to 1.0 m: its statistics ended
+with est_ref_dx and est_ref_dy means of +0.87 and -0.42 m (the two other seeds: 0.03-0.05 m, and
+PROPOSED_KF_DOB's own closed loop about 0.002 m). ``scaled`` holds those fields' mean at 0 and
+divides them by their running root mean square (their "variance" in ``vecnormalize.json`` is the
+mean square, their mean 0; evaluation applies the same file unchanged). ``config.yaml`` records
+the choice and the columns under ``training:``.
+
 **Smoothness** (both off by default): ``action_rate_coef`` c adds -c ||a_k - a_(k-1)||^2 (action
 units, none at an episode's first step) to the training reward (the env's own reward and every
 score are unchanged); ``action_filter`` alpha in (0, 1) makes the agent's action the state of a
@@ -112,6 +123,7 @@ import csv
 import math
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -146,7 +158,7 @@ class BatchedPPO:
                  obs_norm_window: int = 1_000_000, reward_norm_window: int = 1_000_000, teacher: str | None = None,
                  teacher_link: str = "perfect", distill_steps: int = 0, action_rate_coef: float = 0.0,
                  action_filter: float = 1.0, heading_coef: float = 0.0, bounds_loss_coef: float = 0.0,
-                 yaw_rate_coef: float = 0.0, yaw_from: str | None = None) -> None:
+                 yaw_rate_coef: float = 0.0, yaw_from: str | None = None, obs_error_norm: str = "centered") -> None:
         self.__dict__.update({k: v for k, v in locals().items() if k != "self"})
 
 
@@ -155,6 +167,9 @@ MAX_HIDDEN = 8192  #: units of one hidden layer (and of the GRU)
 MAX_LAYERS = 16  #: hidden layers of the actor or the critic
 LOG_STD_MIN = -5.0  #: training clamps the policy's log std here (a lower initial value would never move)
 LOG_STD_INIT_RANGE = (LOG_STD_MIN, 2.0)  #: allowed log_std_init (std e^-5 = 0.007 to e^2 = 7.4 in action units)
+#: ``obs_error_norm``: the reference-error fields (zero = on the reference) centred on their running
+#: mean as every other field (SB3's), or only scaled by their running root mean square (zero stays zero)
+OBS_ERROR_NORMS = ("centered", "scaled")
 MAX_ROLLOUT_SAMPLES = 2 ** 22  #: n_steps x n_envs: samples held in memory per update (default 32 x 512 = 16,384)
 
 
@@ -266,6 +281,9 @@ def check_bppo_hyperparams(hp: dict[str, Any], n_envs: int | None = None) -> Non
         whole_number("hyperparameter reward_norm_window", hp.get("reward_norm_window", 0), 0)
     except ValueError as exc:
         raise ValueError(f"{exc} (samples; 0 = never forget)") from None
+    if hp.get("obs_error_norm", "centered") not in OBS_ERROR_NORMS:
+        raise ValueError(f"hyperparameter obs_error_norm={hp.get('obs_error_norm')!r} is invalid: must be one of "
+                         f"{list(OBS_ERROR_NORMS)} (how the reference-error fields are normalised)")
     _real("hyperparameter action_rate_coef", hp.get("action_rate_coef", 0.0), 0.0, math.inf)
     _real("hyperparameter heading_coef", hp.get("heading_coef", 0.0), 0.0, math.inf)
     _real("hyperparameter bounds_loss_coef", hp.get("bounds_loss_coef", 0.0), 0.0, math.inf)
@@ -427,17 +445,24 @@ def _build_net(obs_dim: int, pk: dict[str, Any]):
 class _RunningMeanStd:
     """Running mean and variance (Chan et al.'s parallel update, as SB3's RunningMeanStd).
     ``window`` > 0 caps the count at that many samples, so old samples fade out (a new batch of
-    b samples then weighs b / (window + b)); 0 keeps every sample forever, as SB3."""
+    b samples then weighs b / (window + b)); 0 keeps every sample forever, as SB3.
+    ``uncentered``: indices of the last axis whose mean is held at 0, so their "variance" is the
+    running mean square (normalising divides them by their root mean square; zero stays zero)."""
 
-    def __init__(self, shape: tuple[int, ...] = (), window: int = 0) -> None:
+    def __init__(self, shape: tuple[int, ...] = (), window: int = 0, uncentered: Sequence[int] = ()) -> None:
         self.mean = np.zeros(shape)
         self.var = np.ones(shape)
         self.count = 1e-4
         self.window = int(window)
+        self.uncentered = np.asarray(sorted(set(int(i) for i in uncentered)), dtype=np.intp)
 
     def update(self, x: np.ndarray) -> None:
         x = np.asarray(x, dtype=np.float64)
         b_mean, b_var, b_count = x.mean(axis=0), x.var(axis=0), x.shape[0]
+        if self.uncentered.size:
+            u = self.uncentered
+            b_var[..., u] = np.mean(x[..., u] ** 2, axis=0)
+            b_mean[..., u] = 0.0
         delta = b_mean - self.mean
         tot = self.count + b_count
         self.mean = self.mean + delta * b_count / tot
@@ -685,11 +710,13 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     net = _build_net(D, pk)
     opt = _adam(net, float(hp["learning_rate"]))
     lr0 = float(hp["learning_rate"])
-    obs_rms = _RunningMeanStd((D,), window=int(hp["obs_norm_window"]))
+    error_cols = env.builder.error_indices if hp["obs_error_norm"] == "scaled" else []
+    obs_rms = _RunningMeanStd((D,), window=int(hp["obs_norm_window"]), uncentered=error_cols)
     ret_rms = _RunningMeanStd((), window=int(hp["reward_norm_window"]))
     # what this run applies, whatever the YAML said or left to the defaults
     resolved["training"] = {"lr_schedule": str(hp["lr_schedule"]), "learning_rate": float(hp["learning_rate"]),
                             "obs_norm_window": int(hp["obs_norm_window"]),
+                            "obs_error_norm": str(hp["obs_error_norm"]), "obs_error_columns": list(error_cols),
                             "reward_norm_window": int(hp["reward_norm_window"]),
                             "norm_obs": norm_obs, "norm_reward": norm_rew,
                             "action_rate_coef": float(hp["action_rate_coef"]),
@@ -716,6 +743,10 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
         sp = _stats_path(Path(cfg.resume_from), ".json")
         if norm_obs:  # train checked that the statistics exist and fit before it created the run
             st = read_obs_stats(sp)
+            if error_cols and np.any(st.mean[error_cols] != 0.0):
+                env.close()
+                raise ValueError(f"resume_from={cfg.resume_from!r} centred the reference-error fields (their mean in "
+                                 f"{sp} is not 0): resume it with obs_error_norm='centered'")
             obs_rms.mean, obs_rms.var, obs_rms.count = st.mean.copy(), st.var.copy(), st.count
     total = plan.total
     eval_seeds = list(range(cfg.eval_seed, cfg.eval_seed + max(int(hp["n_eval_seeds"]), 1)))
