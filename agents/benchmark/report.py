@@ -38,7 +38,7 @@ import json
 import math
 import os
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -464,6 +464,11 @@ def _legend(names: Sequence[str], columns: int = 3) -> tuple[dict, int]:
              "traceorder": "normal", "maxheight": 1.0}, sum(22 + 15 * (k - 1) for k in rows) + 30)
 
 
+def _policy_legend(policies: Iterable[str], styles: dict[str, _Style], columns: int = 3) -> tuple[dict, int]:
+    """:func:`_legend` for these policies' entries, in legend order."""
+    return _legend([_legend_name(p) for p in sorted(policies, key=lambda q: styles[q].rank)], columns)
+
+
 def _buttons(visible: list, lift: float) -> list[dict]:
     """'best few' / 'all policies' buttons at the top left, ``lift`` (of the plot height) above the
     plot (they restyle every trace)."""
@@ -509,7 +514,7 @@ def _fig_leaderboard(board: pd.DataFrame, styles: dict[str, _Style]):
     fig.update_xaxes(title_text="IQM of the steady-state error [m] (log scale)", row=len(tiers), col=1)
     # one column from the figure's left edge: the labels are long and the tick labels already take the
     # left part of the plot area, so two columns there overran the figure's right edge
-    _, extra = _legend([_legend_name(p) for p in sorted(seen, key=lambda q: styles[q].rank)], columns=1)
+    _, extra = _policy_legend(seen, styles, columns=1)
     legend = {"orientation": "v", "yanchor": "top", "x": 0.0, "xref": "container", "xanchor": "left",
               "font": {"size": 11}, "traceorder": "normal"}
     plot = 60 * len(tiers) + 19 * sum(sizes)
@@ -548,7 +553,7 @@ def _fig_breakdown(episodes: pd.DataFrame, condition: str, label: str, styles: d
         fig.update_xaxes(title_text=_txt(label), row=1, col=c)
         fig.update_yaxes(type="log", row=1, col=c)
     fig.update_yaxes(title_text="IQM of the steady-state error [m]", row=1, col=1)
-    legend, extra = _legend([_legend_name(p) for p in sorted(seen, key=lambda q: styles[q].rank)], columns=2)
+    legend, extra = _policy_legend(seen, styles, columns=2)
     legend["y"] = -90 / 330
     fig.update_layout(height=330 + 150 + extra, legend=legend, margin={"l": 10, "r": 10, "t": 80, "b": extra + 70},
                       updatemenus=_buttons([tr.visible for tr in fig.data], 50 / 330))
@@ -582,7 +587,7 @@ def _fig_forces(runs: dict[str, pd.DataFrame], styles: dict[str, _Style], shown:
             fig.add_hline(y=sgn * lim, line_dash="dot", line_color="black", line_width=1, row=j, col=1)
         fig.update_yaxes(title_text=f"{n} [{unit}]", row=j, col=1)
     fig.update_xaxes(title_text="time [s]", row=3, col=1)
-    legend, extra = _legend([_legend_name(p) for p in sorted(runs, key=lambda q: styles[q].rank)])
+    legend, extra = _policy_legend(runs, styles)
     legend["y"] = -0.1
     fig.update_layout(height=640 + extra, legend=legend, margin={"l": 10, "r": 10, "t": 40, "b": extra + 30})
     return fig
@@ -606,7 +611,7 @@ def _fig_track(runs: dict[str, pd.DataFrame], styles: dict[str, _Style], shown: 
     fig.update_yaxes(title_text="along [m] (+: ahead)", row=1, col=1)
     fig.update_yaxes(title_text="cross [m] (+: to port)", row=2, col=1)
     fig.update_xaxes(title_text="time [s]", row=2, col=1)
-    legend, extra = _legend([_legend_name(p) for p in sorted(runs, key=lambda q: styles[q].rank)])
+    legend, extra = _policy_legend(runs, styles)
     legend["y"] = -0.14
     fig.update_layout(height=520 + extra, legend=legend, margin={"l": 10, "r": 10, "t": 40, "b": extra + 30})
     return fig
