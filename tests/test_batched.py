@@ -410,6 +410,21 @@ def test_scaled_error_fields_are_never_centred_in_training_or_evaluation(tmp_pat
     assert (agent.normalize(x)[0, cols] == 0.0).all()
 
 
+def test_resuming_a_centred_run_with_scaled_errors_is_refused(tmp_path):
+    """A centred run's statistics hold non-zero means for the error fields: resuming it with
+    obs_error_norm=scaled would treat them as mean squares, so it is refused, naming the file."""
+    from agents.cli import main
+
+    common = ["train", "--algo", "bppo", "--env", "AUVFollow-Easy-v1", "--mode", "scratch", "--n-envs", "8",
+              "--hp", "n_steps=8", "--hp", "batch_size=32", "--checkpoint-freq", "0", "--eval-freq", "0",
+              "--no-final-eval", "--no-progress", "--no-tensorboard", "--out", str(tmp_path)]
+    assert main([*common, "--timesteps", "128", "--run-name", "a"]) == 0
+    refused = r"centred the reference-error fields.*vecnormalize.*obs_error_norm='centered'"
+    with pytest.raises(ValueError, match=refused):
+        main([*common, "--timesteps", "256", "--hp", "obs_error_norm=scaled",
+              "--resume", str(tmp_path / "a" / "model.zip"), "--run-name", "b"])
+
+
 def test_the_residual_section_sits_between_default_and_the_env_section(tmp_path):
     from agents.training.config import load_hyperparams
 
