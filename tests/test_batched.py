@@ -3,6 +3,8 @@ the base's disturbance observer does not cancel, the batched training env, bppo 
 
 from __future__ import annotations
 
+import re
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -410,19 +412,29 @@ def test_scaled_error_fields_are_never_centred_in_training_or_evaluation(tmp_pat
     assert (agent.normalize(x)[0, cols] == 0.0).all()
 
 
-def test_resuming_a_centred_run_with_scaled_errors_is_refused(tmp_path):
-    """A centred run's statistics hold non-zero means for the error fields: resuming it with
-    obs_error_norm=scaled would treat them as mean squares, so it is refused, naming the file."""
+def test_resuming_with_the_other_error_normalisation_is_refused_before_anything_is_written(tmp_path, capsys):
+    """A centred run's statistics hold non-zero means for the error fields, a scaled run's hold 0
+    (its var is a mean square): continuing either the other way would misread every statistic, so
+    both are refused, naming the file and the setting to use, and no run directory is left behind."""
     from agents.cli import main
 
     common = ["train", "--algo", "bppo", "--env", "AUVFollow-Easy-v1", "--mode", "scratch", "--n-envs", "8",
               "--hp", "n_steps=8", "--hp", "batch_size=32", "--checkpoint-freq", "0", "--eval-freq", "0",
               "--no-final-eval", "--no-progress", "--no-tensorboard", "--out", str(tmp_path)]
-    assert main([*common, "--timesteps", "128", "--run-name", "a"]) == 0
-    refused = r"centred the reference-error fields.*vecnormalize.*obs_error_norm='centered'"
-    with pytest.raises(ValueError, match=refused):
-        main([*common, "--timesteps", "256", "--hp", "obs_error_norm=scaled",
-              "--resume", str(tmp_path / "a" / "model.zip"), "--run-name", "b"])
+    assert main([*common, "--timesteps", "128", "--run-name", "c"]) == 0
+    assert main([*common, "--timesteps", "128", "--hp", "obs_error_norm=scaled", "--run-name", "s"]) == 0
+    for run, asked, was in (("c", "scaled", "centered"), ("s", "centered", "scaled")):
+        with pytest.raises(SystemExit) as exc:
+            main([*common, "--timesteps", "256", "--hp", f"obs_error_norm={asked}",
+                  "--resume", str(tmp_path / run / "model.zip"), "--run-name", f"{run}-resumed"])
+        err = " ".join(capsys.readouterr().err.split())
+        assert exc.value.code == 2 and re.search(
+            rf"--resume: .*obs_error_norm='{was}' .*vecnormalize.json.*asks for obs_error_norm='{asked}': "
+            rf"resume it with obs_error_norm='{was}'", err), err
+        assert not (tmp_path / f"{run}-resumed").exists()
+    # the matching setting resumes
+    assert main([*common, "--timesteps", "256", "--hp", "obs_error_norm=scaled",
+                 "--resume", str(tmp_path / "s" / "model.zip"), "--run-name", "s2"]) == 0
 
 
 def test_the_residual_section_sits_between_default_and_the_env_section(tmp_path):

@@ -742,11 +742,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
 
         sp = _stats_path(Path(cfg.resume_from), ".json")
         if norm_obs:  # train checked that the statistics exist and fit before it created the run
-            st = read_obs_stats(sp)
-            if error_cols and np.any(st.mean[error_cols] != 0.0):
-                env.close()
-                raise ValueError(f"resume_from={cfg.resume_from!r} centred the reference-error fields (their mean in "
-                                 f"{sp} is not 0): resume it with obs_error_norm='centered'")
+            st = read_obs_stats(sp)  # (and that its error fields were normalised as this run asks)
             obs_rms.mean, obs_rms.var, obs_rms.count = st.mean.copy(), st.var.copy(), st.count
     total = plan.total
     eval_seeds = list(range(cfg.eval_seed, cfg.eval_seed + max(int(hp["n_eval_seeds"]), 1)))

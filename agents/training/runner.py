@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 import yaml
 
 import auv_follow_env
@@ -271,10 +272,11 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
     return (run, model) if return_model else run
 
 
-def _check_bppo_resume(cfg: TrainConfig, plan: _Plan, obs_dim: int) -> int:
+def _check_bppo_resume(cfg: TrainConfig, plan: _Plan, obs_dim: int, error_cols: list[int]) -> int:
     """Refuse a bppo checkpoint that cannot continue this run (another observation width or
-    policy_kwargs, missing or unfit observation statistics); returns its steps."""
-    from agents.training.batched_ppo import _load_model_file, _policy_kwargs
+    policy_kwargs, missing or unfit observation statistics, the reference-error fields
+    (``error_cols``) normalised the other way); returns its steps. Runs before anything is written."""
+    from agents.training.batched_ppo import BatchedPPO, _load_model_file, _policy_kwargs
 
     path = Path(cfg.resume_from)
     try:
@@ -310,6 +312,16 @@ def _check_bppo_resume(cfg: TrainConfig, plan: _Plan, obs_dim: int) -> int:
         if st.mean.shape != (obs_dim,):
             raise ConfigError("resume_from", f"{sp} has statistics for {st.mean.shape[0]} features, the model "
                                              f"observes {obs_dim}")
+        # scaled statistics hold the error fields' mean at exactly 0 (their var is a mean square);
+        # centred ones never do: continuing them the other way would misread every statistic
+        was = "scaled" if error_cols and np.all(st.mean[error_cols] == 0.0) else "centered"
+        asked = str(plan.hp.get("obs_error_norm", BatchedPPO().obs_error_norm))
+        if error_cols and asked != was:
+            held = "hold mean 0" if was == "scaled" else "are centred"
+            raise ConfigError("resume_from", f"resume_from={cfg.resume_from!r} was trained with obs_error_norm="
+                                             f"{was!r} (the reference-error columns {list(error_cols)} of {sp} "
+                                             f"{held}), this run asks for obs_error_norm={asked!r}: resume it "
+                                             f"with obs_error_norm={was!r}")
     if plan.total <= steps:
         raise ConfigError("total_timesteps", f"total_timesteps={plan.total} is not beyond the checkpoint's "
                                              f"{steps} steps: give a larger total_timesteps to resume")
@@ -339,9 +351,9 @@ def _train_batched(cfg: TrainConfig, plan: _Plan, return_model: bool):
         trial = BatchedTrainEnv(cfg.env_id, 1, seed=cfg.seed, env_kwargs=cfg.env_kwargs, builder=builder)
     except ValueError as exc:
         raise ConfigError("observation", f"the observation settings are refused: {_one_line(exc)}") from None
-    obs_dim = trial.obs_dim
+    obs_dim, error_cols = trial.obs_dim, list(trial.builder.error_indices)
     trial.close()
-    start = _check_bppo_resume(cfg, plan, obs_dim) if cfg.resume_from is not None else 0
+    start = _check_bppo_resume(cfg, plan, obs_dim, error_cols) if cfg.resume_from is not None else 0
     run = plan.run
     created = not run.exists()
     checkpoint_freq, eval_freq = cfg.resolved_freqs()
