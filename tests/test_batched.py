@@ -385,7 +385,8 @@ def test_uncentered_statistics_keep_the_mean_square():
 
 
 def test_scaled_error_fields_are_never_centred_in_training_or_evaluation(tmp_path):
-    """obs_error_norm=scaled: the run's statistics hold mean 0 for ref_dx, ref_dy, est_ref_dx and
+    """obs_error_norm=scaled, the shipped default from scratch (bppo.yml): the run's statistics
+    hold mean 0 for ref_dx, ref_dy, est_ref_dx and
     est_ref_dy (columns 12, 13 and 20 + 7, 20 + 8 of the v1 estimator observation) and a mean square
     > 0; every other column is centred as before; config.yaml records the choice; the loaded agent
     maps a zero reference error to a zero input, as training did."""
@@ -396,7 +397,7 @@ def test_scaled_error_fields_are_never_centred_in_training_or_evaluation(tmp_pat
     from agents.training.obs_stats import read_obs_stats
 
     assert main(["train", "--algo", "bppo", "--env", "AUVFollow-Easy-v1", "--mode", "scratch", "--n-envs", "8",
-                 "--hp", "n_steps=8", "--hp", "batch_size=32", "--hp", "obs_error_norm=scaled", "--timesteps", "128",
+                 "--hp", "n_steps=8", "--hp", "batch_size=32", "--timesteps", "128",
                  "--checkpoint-freq", "0", "--eval-freq", "0", "--no-final-eval", "--no-progress", "--no-tensorboard",
                  "--out", str(tmp_path), "--run-name", "r"]) == 0
     cfg = yaml.safe_load((tmp_path / "r" / "config.yaml").read_text())
@@ -421,7 +422,7 @@ def test_resuming_with_the_other_error_normalisation_is_refused_before_anything_
     common = ["train", "--algo", "bppo", "--env", "AUVFollow-Easy-v1", "--mode", "scratch", "--n-envs", "8",
               "--hp", "n_steps=8", "--hp", "batch_size=32", "--checkpoint-freq", "0", "--eval-freq", "0",
               "--no-final-eval", "--no-progress", "--no-tensorboard", "--out", str(tmp_path)]
-    assert main([*common, "--timesteps", "128", "--run-name", "c"]) == 0
+    assert main([*common, "--timesteps", "128", "--hp", "obs_error_norm=centered", "--run-name", "c"]) == 0
     assert main([*common, "--timesteps", "128", "--hp", "obs_error_norm=scaled", "--run-name", "s"]) == 0
     for run, asked, was in (("c", "scaled", "centered"), ("s", "centered", "scaled")):
         with pytest.raises(SystemExit) as exc:
@@ -449,6 +450,9 @@ def test_the_residual_section_sits_between_default_and_the_env_section(tmp_path)
     assert (res["gamma"], res["n_epochs"], res["ent_coef"]) == (0.5, 7, 0.2)
     shipped = load_hyperparams("bppo", "AUVFollow-Medium-v1", mode="residual")
     assert (shipped["gamma"], shipped["gae_lambda"]) == (0.98, 1.0)
+    # residuals keep the centred error fields they were measured with; from scratch they are scaled
+    assert shipped["obs_error_norm"] == "centered"
+    assert load_hyperparams("bppo", "AUVFollow-Medium-v1", mode="scratch")["obs_error_norm"] == "scaled"
 
 
 # --- distillation (teacher -> student) ----------------------------------------------------------

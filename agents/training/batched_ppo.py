@@ -32,8 +32,9 @@ std at 1-2 m for a 0.02 m steady error. A fixed physical reward scale was the al
 window needs no per-tier constant and follows the policy as it improves. Both windows are
 recorded in ``config.yaml`` (``training:``) and the observation window in ``vecnormalize.json``.
 
-**Reference errors scaled, not centred** (``obs_error_norm``: ``centered``, the default and what
-every committed run before it used, or ``scaled``). A forgetting mean has a drift mode: the
+**Reference errors scaled, not centred** (``obs_error_norm``: ``scaled``, the default from scratch,
+or ``centered``, what every run before this default used and bppo.yml's ``residual`` section keeps,
+since no residual was measured scaled). A forgetting mean has a drift mode: the
 running mean of the reference-error fields (``ref_dx``, ``ref_dy``, ``est_ref_dx``, ``est_ref_dy``;
 zero = on the reference) follows the policy's own steady offset, so an offset the policy settles
 into soon reads as zero error. One Medium run drifted so from 0.31 m to 1.0 m: its statistics ended
@@ -158,7 +159,7 @@ class BatchedPPO:
                  obs_norm_window: int = 1_000_000, reward_norm_window: int = 1_000_000, teacher: str | None = None,
                  teacher_link: str = "perfect", distill_steps: int = 0, action_rate_coef: float = 0.0,
                  action_filter: float = 1.0, heading_coef: float = 0.0, bounds_loss_coef: float = 0.0,
-                 yaw_rate_coef: float = 0.0, yaw_from: str | None = None, obs_error_norm: str = "centered") -> None:
+                 yaw_rate_coef: float = 0.0, yaw_from: str | None = None, obs_error_norm: str = "scaled") -> None:
         self.__dict__.update({k: v for k, v in locals().items() if k != "self"})
 
 
@@ -281,7 +282,7 @@ def check_bppo_hyperparams(hp: dict[str, Any], n_envs: int | None = None) -> Non
         whole_number("hyperparameter reward_norm_window", hp.get("reward_norm_window", 0), 0)
     except ValueError as exc:
         raise ValueError(f"{exc} (samples; 0 = never forget)") from None
-    if hp.get("obs_error_norm", "centered") not in OBS_ERROR_NORMS:
+    if hp.get("obs_error_norm", "scaled") not in OBS_ERROR_NORMS:
         raise ValueError(f"hyperparameter obs_error_norm={hp.get('obs_error_norm')!r} is invalid: must be one of "
                          f"{list(OBS_ERROR_NORMS)} (how the reference-error fields are normalised)")
     _real("hyperparameter action_rate_coef", hp.get("action_rate_coef", 0.0), 0.0, math.inf)
