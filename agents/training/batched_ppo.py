@@ -147,6 +147,12 @@ CLIP_REWARD = 10.0
 EPS = 1e-8
 
 
+#: ``obs_error_norm``: the reference-error fields (zero = on the reference) centred on their running
+#: mean as every other field (SB3's), or only scaled by their running root mean square (zero stays zero)
+OBS_ERROR_NORMS = ("centered", "scaled")
+OBS_ERROR_NORM_DEFAULT = "scaled"  #: from scratch (bppo.yml's residual section keeps "centered")
+
+
 class BatchedPPO:
     """The hyperparameters of the batched PPO (the constructor's signature is what
     :func:`agents.training.check_hyperparams` validates ``--hp`` keys against)."""
@@ -159,7 +165,8 @@ class BatchedPPO:
                  obs_norm_window: int = 1_000_000, reward_norm_window: int = 1_000_000, teacher: str | None = None,
                  teacher_link: str = "perfect", distill_steps: int = 0, action_rate_coef: float = 0.0,
                  action_filter: float = 1.0, heading_coef: float = 0.0, bounds_loss_coef: float = 0.0,
-                 yaw_rate_coef: float = 0.0, yaw_from: str | None = None, obs_error_norm: str = "scaled") -> None:
+                 yaw_rate_coef: float = 0.0, yaw_from: str | None = None,
+                 obs_error_norm: str = OBS_ERROR_NORM_DEFAULT) -> None:
         self.__dict__.update({k: v for k, v in locals().items() if k != "self"})
 
 
@@ -168,9 +175,6 @@ MAX_HIDDEN = 8192  #: units of one hidden layer (and of the GRU)
 MAX_LAYERS = 16  #: hidden layers of the actor or the critic
 LOG_STD_MIN = -5.0  #: training clamps the policy's log std here (a lower initial value would never move)
 LOG_STD_INIT_RANGE = (LOG_STD_MIN, 2.0)  #: allowed log_std_init (std e^-5 = 0.007 to e^2 = 7.4 in action units)
-#: ``obs_error_norm``: the reference-error fields (zero = on the reference) centred on their running
-#: mean as every other field (SB3's), or only scaled by their running root mean square (zero stays zero)
-OBS_ERROR_NORMS = ("centered", "scaled")
 MAX_ROLLOUT_SAMPLES = 2 ** 22  #: n_steps x n_envs: samples held in memory per update (default 32 x 512 = 16,384)
 
 
@@ -282,7 +286,7 @@ def check_bppo_hyperparams(hp: dict[str, Any], n_envs: int | None = None) -> Non
         whole_number("hyperparameter reward_norm_window", hp.get("reward_norm_window", 0), 0)
     except ValueError as exc:
         raise ValueError(f"{exc} (samples; 0 = never forget)") from None
-    if hp.get("obs_error_norm", "scaled") not in OBS_ERROR_NORMS:
+    if hp.get("obs_error_norm", OBS_ERROR_NORM_DEFAULT) not in OBS_ERROR_NORMS:
         raise ValueError(f"hyperparameter obs_error_norm={hp.get('obs_error_norm')!r} is invalid: must be one of "
                          f"{list(OBS_ERROR_NORMS)} (how the reference-error fields are normalised)")
     _real("hyperparameter action_rate_coef", hp.get("action_rate_coef", 0.0), 0.0, math.inf)

@@ -276,7 +276,7 @@ def _check_bppo_resume(cfg: TrainConfig, plan: _Plan, obs_dim: int, error_cols: 
     """Refuse a bppo checkpoint that cannot continue this run (another observation width or
     policy_kwargs, missing or unfit observation statistics, the reference-error fields
     (``error_cols``) normalised the other way); returns its steps. Runs before anything is written."""
-    from agents.training.batched_ppo import BatchedPPO, _load_model_file, _policy_kwargs
+    from agents.training.batched_ppo import OBS_ERROR_NORM_DEFAULT, _load_model_file, _policy_kwargs
 
     path = Path(cfg.resume_from)
     try:
@@ -315,7 +315,7 @@ def _check_bppo_resume(cfg: TrainConfig, plan: _Plan, obs_dim: int, error_cols: 
         # scaled statistics hold the error fields' mean at exactly 0 (their var is a mean square);
         # centred ones never do: continuing them the other way would misread every statistic
         was = "scaled" if error_cols and np.all(st.mean[error_cols] == 0.0) else "centered"
-        asked = str(plan.hp.get("obs_error_norm", BatchedPPO().obs_error_norm))
+        asked = str(plan.hp.get("obs_error_norm", OBS_ERROR_NORM_DEFAULT))
         if error_cols and asked != was:
             held = "hold mean 0" if was == "scaled" else "are centred"
             raise ConfigError("resume_from", f"resume_from={cfg.resume_from!r} was trained with obs_error_norm="
