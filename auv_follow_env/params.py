@@ -754,6 +754,9 @@ def _check_every_draw(rng_map: Mapping[str, tuple[float, float]], cond_kw: Mappi
     def shown(name: str) -> str:
         return f"{name}={rng_map[name]!r} (drawn per reset)" if name in rng_map else f"{name}={span(name)[0]!r}"
 
+    if "leader_modes" in rng_map and rng_map["leader_modes"][0] != rng_map["leader_modes"][1]:
+        raise ValueError(f"leader_modes={rng_map['leader_modes']!r} is invalid: the leader's mode count is fixed per "
+                         "env, 0, 1 or 2, not drawn per reset (give one of these numbers)")
     rules = [("period_jitter_s", "update_period_s", lambda a, b: a < b, "<",
               "sends must stay in order"),
              ("target_speed_min", "target_speed_max", lambda a, b: a <= b, "<=", "")]
@@ -768,6 +771,38 @@ def _check_every_draw(rng_map: Mapping[str, tuple[float, float]], cond_kw: Mappi
             raise ValueError(f"{shown(a)} and {shown(b)} are invalid together: a reset can draw {a}={worst_a:g} "
                              f"and {b}={worst_b:g}, but every draw must have {a} {op} {b}"
                              + (f" ({why})" if why else "") + ": narrow the ranges so that they cannot overlap")
+    modes = span("leader_modes")[1]
+    if modes > 0:
+        _check_leader_draws(rng_map, span, shown, modes)
+
+
+def _check_leader_draws(rng_map, span, shown, modes: float) -> None:
+    """The Leader rules of :class:`Condition` for the worst draw of the ranges (each field is drawn
+    on its own, so the bound's lowest draw must clear the highest commanded value)."""
+    def refuse(bound: str, worst: float, what: str, names: tuple[str, ...]) -> None:
+        ranged = [n for n in (bound, *names) if n in rng_map]
+        if not ranged:
+            return  # fixed values only: Condition checks them
+        raise ValueError(f"{', '.join(shown(n) for n in (bound, *names))} are invalid together: a reset can draw "
+                         f"{bound}={span(bound)[0]:g} below {what} {worst:g}: every draw must have {bound} >= "
+                         f"{what}; narrow the ranges so that they cannot overlap")
+
+    speeds = ("leader_cruise_speed",) + (("leader_sprint_speed",) if modes >= 2 else ())
+    fastest = max(span(n)[1] for n in speeds)
+    if span("target_speed_max")[0] < fastest:
+        refuse("target_speed_max", fastest, "the leader's fastest commanded speed", speeds)
+    rates = ("leader_turn_rate",) + (("leader_uturn_rate",) if span("leader_survey_share")[1] > 0 else ())
+    sharpest = max(span(n)[1] for n in rates)
+    if span("target_yaw_rate_max")[0] < sharpest:
+        refuse("target_yaw_rate_max", sharpest, "the leader's sharpest commanded turn rate",
+               rates + (("leader_survey_share",) if "leader_uturn_rate" in rates else ()))
+    if span("leader_uturn_rate")[1] * span("leader_rate_lag_s")[1] >= math.pi:
+        names = ("leader_uturn_rate", "leader_rate_lag_s")
+        if any(n in rng_map for n in names):
+            raise ValueError(f"{shown(names[0])} and {shown(names[1])} are invalid together: a reset can draw "
+                             f"leader_uturn_rate * leader_rate_lag_s = "
+                             f"{span(names[0])[1] * span(names[1])[1]:g} rad, but every draw must have it < pi "
+                             "(a U-turn's command ends when pi - rate * lag remains): narrow the ranges")
 
 
 def make_config(scenario: str = "S4", disturbance: str | None = None, *, version: str = "v0",

@@ -122,6 +122,29 @@ def _leader_moments(mid) -> tuple[float, float, float, float]:
     return math.sqrt(var_u), tau_u, math.sqrt(var_r), tau_r
 
 
+#: EstimatorConfig's real settings: (low, high, low end open, unit). The upper ends are far beyond any
+#: sensible setting (a sigma of 100 m, a correlation time of 11 days) and keep every filter's
+#: arithmetic finite: at 1e308 a process noise overflowed to NaN actions (tests/test_hardening4.py
+#: runs each model with every setting at its ends)
+_REAL_BOUNDS: dict[str, tuple[float, float, bool, str]] = {
+    "sigma_pos": (0.0, 100.0, True, "m"), "sigma_pos_per_m": (0.0, 1.0, False, "m/m"),
+    "sigma_psi": (0.0, math.pi, True, "rad"), "sigma_vel": (0.0, 10.0, True, "m/s"),
+    "sigma_r": (0.0, 10.0, True, "rad/s"),
+    "q_acc": (0.0, 100.0, False, "m^2/s^3"), "q_yaw": (0.0, 10.0, False, "rad^2/s^3"),
+    "q_jerk": (0.0, 100.0, False, "m^2/s^5"), "q_yaw_acc": (0.0, 10.0, False, "rad^2/s^5"),
+    "sigma_acc0": (0.0, 100.0, False, "m/s^2"), "sigma_yaw_acc0": (0.0, 10.0, False, "rad/s^2"),
+    "tau_u": (0.0, 1e6, True, "s"), "tau_r": (0.0, 1e6, True, "s"), "sigma_ubar0": (0.0, 10.0, False, "m/s"),
+    "adapt_n0": (0.0, 1e6, False, "fixes"), "smooth_s": (0.0, 1e4, False, "s"),
+    "imm_q_u": (0.0, 100.0, False, "m^2/s^3"), "imm_q_r": (0.0, 10.0, False, "rad^2/s^3"),
+    "imm_q_h": (0.0, 10.0, False, "rad^2/s"), "imm_tau_s": (0.0, 1e6, True, "s"),
+    "limm_q_u": (0.0, 100.0, False, "m^2/s^3"), "limm_q_h": (0.0, 10.0, False, "rad^2/s"),
+    "limm_q_r": (0.0, 10.0, False, "rad^2/s^3"), "limm_sojourn": (0.0, 100.0, True, "-"),
+    "pf_temper": (0.0, 1e3, True, "-"), "pf_drift": (0.0, 1e3, False, "m^2/s"),
+}
+#: EstimatorConfig's whole-number settings: (low, high)
+_WHOLE_BOUNDS: dict[str, tuple[int, int]] = {"limm_shape": (1, 4), "pf_particles": (1, 100_000)}
+
+
 @dataclass(frozen=True, kw_only=True)
 class EstimatorConfig:
     """Settings of :class:`TargetEstimator` (all ours). The defaults are for v0's exact, every-step
@@ -164,30 +187,37 @@ class EstimatorConfig:
     pf_drift: float = 0.03  #: LEADER_PF: position likelihood variance added per second between fixes [m^2/s]
 
     def __post_init__(self) -> None:
-        if self.model not in MODELS:
+        if not isinstance(self.model, str) or self.model not in MODELS:
             raise ValueError(f"model={self.model!r} is invalid: must be one of {list(MODELS)}")
-        if isinstance(self.limm_shape, bool) or not isinstance(self.limm_shape, int) or not 1 <= self.limm_shape <= 4:
-            raise ValueError(f"limm_shape={self.limm_shape!r} is invalid: must be a whole number in [1, 4]")
-        if isinstance(self.pf_particles, bool) or not isinstance(self.pf_particles, int) or not \
-                1 <= self.pf_particles <= 100_000:
-            raise ValueError(f"pf_particles={self.pf_particles!r} is invalid: must be a whole number in [1, 100000]")
         for b in ("adapt", "imm_gate"):
-            if not isinstance(getattr(self, b), bool):
-                raise ValueError(f"{b}={getattr(self, b)!r} is invalid: must be True or False")
+            v = getattr(self, b)
+            if not isinstance(v, (bool, np.bool_)):
+                raise ValueError(f"{b}={v!r} is invalid: must be True or False")
+            object.__setattr__(self, b, bool(v))  # a numpy bool is stored as Python's
+        for name, (lo, hi) in _WHOLE_BOUNDS.items():
+            v = getattr(self, name)
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+                raise ValueError(f"{name}={v!r} is invalid: must be a whole number in [{lo}, {hi}] (int or numpy "
+                                 f"integer)")
+            object.__setattr__(self, name, int(v))
         for f in fields(self):
-            if f.name in ("model", "adapt", "imm_gate", "pf_particles", "limm_shape"):
+            if f.name not in _REAL_BOUNDS:
                 continue
+            lo, hi, lo_open, unit = _REAL_BOUNDS[f.name]
             v = getattr(self, f.name)
-            inf_ok = f.name in ("tau_u", "tau_r") and self.model == "OU0" and v == math.inf
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not ((math.isfinite(v) or inf_ok) and v >= 0):
-                raise ValueError(f"{f.name}={v!r} is invalid: must be a finite number >= 0"
-                                 + (" (or inf with model='OU0')" if f.name in ("tau_u", "tau_r") else ""))
+            inf_ok = f.name in ("tau_u", "tau_r") and self.model == "OU0"
+            allowed = (f"a number in {'(' if lo_open else '['}{lo:g}, {hi:g}] [{unit}]"
+                       + (" (or inf with model='OU0')" if f.name in ("tau_u", "tau_r") else ""))
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+                raise ValueError(f"{f.name}={v!r} is invalid: must be {allowed}, got a {type(v).__name__}")
+            x = float(v)
+            ok = (x > lo if lo_open else x >= lo) and (x <= hi or (inf_ok and x == math.inf))
+            if not ok:  # NaN fails both comparisons
+                raise ValueError(f"{f.name}={v!r} is invalid: must be {allowed}")
+            object.__setattr__(self, f.name, x)  # a numpy scalar is stored as a Python float
         if (self.adapt or self.smooth_s) and self.model != "OU0":
             raise ValueError(f"adapt={self.adapt!r} / smooth_s={self.smooth_s!r} need model='OU0' "
                              f"(got model={self.model!r})")
-        for n in ("sigma_pos", "sigma_psi", "sigma_vel", "sigma_r", "tau_u", "tau_r", "imm_tau_s", "limm_sojourn"):
-            if getattr(self, n) <= 0:
-                raise ValueError(f"{n}={getattr(self, n)!r} is invalid: must be a finite number > 0")
 
     @property
     def dim(self) -> int:
