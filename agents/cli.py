@@ -250,7 +250,7 @@ def _check_writable(path: Path, flag: str, want_dir: bool) -> None:
             raise _Refused(flag, f"{path} exists and is not a directory")
         if not want_dir and path.is_dir():
             raise _Refused(flag, f"{path} is a directory: give a file name, e.g. {path / 'eval.csv'}")
-    anc = path if path.exists() else path.parent
+    anc = path if path.is_dir() else path.parent  # an existing file is overwritten: its directory must be writable
     while not anc.exists():
         anc = anc.parent
     if not anc.is_dir():

@@ -9,10 +9,10 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1
+from auv_follow_env.layout import LAYOUTS, OBS_DIM, OBS_DIM_V1, OBS_INDEX_V1
 from auv_follow_env.params import TaskSpec
 
-__all__ = ["ScriptedPolicy", "as_batch", "as_mask", "FilteredDerivative", "wrap_to_pi", "sat"]
+__all__ = ["ScriptedPolicy", "ObservationHold", "as_batch", "as_mask", "FilteredDerivative", "wrap_to_pi", "sat"]
 
 
 def wrap_to_pi(a: np.ndarray) -> np.ndarray:
@@ -94,6 +94,85 @@ def as_mask(mask: Any, n: int, name: str) -> np.ndarray:
     return m
 
 
+#: v1 columns of the newest packet (target and reference fields, its two ages)
+_PACKET = np.r_[OBS_INDEX_V1["target_dx"]:OBS_INDEX_V1["ref_dy"] + 1,
+                OBS_INDEX_V1["packet_age"], OBS_INDEX_V1["since_arrival"]]
+_AGES = np.array([OBS_INDEX_V1["packet_age"], OBS_INDEX_V1["since_arrival"]])
+_NEW, _HAS = OBS_INDEX_V1["new_packet"], OBS_INDEX_V1["has_packet"]
+HOLD_DOC = "docs/api.md#non-finite-observations"
+
+
+def _names(width: int, bad_row: np.ndarray) -> str:
+    return ", ".join(f.name for f, b in zip(LAYOUTS[width], bad_row, strict=True) if b)
+
+
+class ObservationHold:
+    """The recovery rule for observations with a non-finite field (NaN or +-inf), per env.
+
+    A field that is not finite takes its last finite value of the episode. On the v1 layout
+    a non-finite field of the newest packet (fields 5-13, ``packet_age``, ``since_arrival``)
+    or of ``new_packet`` drops that step's packet: every packet field keeps the last packet's
+    value, its two ages grow by ``dt`` (while a packet is held), and ``new_packet`` is 0. The
+    next finite observation is used as it is: nothing non-finite outlives its step.
+
+    An episode's first observation has nothing to hold: a non-finite field there raises a
+    ValueError naming the row and the fields. :attr:`held` counts the (env, step) pairs that
+    held a field; the first hold of an instance issues one ``RuntimeWarning``.
+
+    Call it with the batch (N, W) float64 and the per-env episode-start mask; ``commit=False``
+    applies the rule without remembering the observation (a peek).
+    """
+
+    def __init__(self, dt: float) -> None:
+        self.dt = float(dt)
+        self._last: np.ndarray | None = None
+        self.held = 0
+        self._warned = False
+
+    def reset(self) -> None:
+        """Forget every env: the next call is each env's first observation."""
+        self._last = None
+
+    def __call__(self, obs: np.ndarray, start: np.ndarray | None = None, commit: bool = True) -> np.ndarray:
+        fresh = self._last is None or self._last.shape != obs.shape
+        bad = ~np.isfinite(obs)
+        if not bad.any():
+            if commit:
+                if fresh:
+                    self._last = obs.copy()
+                else:
+                    np.copyto(self._last, obs)
+            return obs
+        rows = bad.any(axis=1)
+        first = np.ones(obs.shape[0], dtype=bool) if fresh else (
+            np.zeros(obs.shape[0], dtype=bool) if start is None else np.asarray(start, dtype=bool))
+        if np.any(rows & first):
+            i = int(np.flatnonzero(rows & first)[0])
+            raise ValueError(f"observation row {i} has non-finite {_names(obs.shape[1], bad[i])} "
+                             f"({', '.join(repr(float(obs[i, j])) for j in np.flatnonzero(bad[i]))}) at the first "
+                             f"step of its episode: there is no earlier value to hold ({HOLD_DOC})")
+        last = self._last
+        out = np.where(bad, last, obs)
+        if obs.shape[1] == OBS_DIM_V1:
+            drop = bad[:, _PACKET].any(axis=1) | bad[:, _NEW]
+            if drop.any():
+                out[np.ix_(drop, _PACKET)] = last[np.ix_(drop, _PACKET)]
+                ages = last[np.ix_(drop, _AGES)] + self.dt * (last[drop, _HAS] > 0)[:, None]
+                out[np.ix_(drop, _AGES)] = ages
+                out[drop, _NEW] = 0.0
+        self.held += int(rows.sum())
+        if not self._warned:
+            import warnings
+
+            self._warned = True
+            i = int(np.flatnonzero(rows)[0])
+            warnings.warn(f"observation row {i} has non-finite {_names(obs.shape[1], bad[i])}: held at the last "
+                          f"finite values ({HOLD_DOC}; warned once per controller)", RuntimeWarning, stacklevel=3)
+        if commit:
+            np.copyto(last, out)
+        return out
+
+
 class ScriptedPolicy:
     """Base of the scripted controllers: an SB3-style policy over observations.
 
@@ -104,7 +183,8 @@ class ScriptedPolicy:
     ``predict`` accepts one observation or a batch (N, width) of either layout (width 16
     for v0, 20 for v1; :mod:`auv_follow_env.layout`). Memory is reset
     where ``episode_start`` is True; if ``episode_start`` is None, call :meth:`reset`
-    at each new episode yourself (the first call always starts fresh).
+    at each new episode yourself (the first call always starts fresh). A non-finite
+    observation field is held at its last finite value (:class:`ObservationHold`).
     """
 
     name = "scripted"
@@ -119,10 +199,13 @@ class ScriptedPolicy:
         self._limits = np.asarray(spec.force_limits, dtype=np.float64)
         self._n: int | None = None
         self.last_forces: np.ndarray | None = None
+        #: the recovery rule for non-finite observation fields (:class:`ObservationHold`)
+        self.hold = ObservationHold(spec.dt)
 
     def reset(self) -> None:
         """Forget all memory: the next call starts fresh for every env."""
         self._n = None
+        self.hold.reset()
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool = True) -> tuple[np.ndarray, Any]:
@@ -133,6 +216,7 @@ class ScriptedPolicy:
             self._n = n
         else:
             mask = as_mask(episode_start, n, "episode_start")
+        obs = self.hold(obs, mask)
         forces = self.forces(obs, mask)
         self.last_forces = forces
         if (isinstance(forces, np.ndarray) and forces.dtype == np.float64 and forces.ndim == 2

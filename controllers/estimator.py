@@ -75,7 +75,7 @@ import numpy as np
 from auv_follow_env.layout import OBS_DIM, OBS_DIM_V1, decode
 from auv_follow_env.params import TaskSpec
 from controllers import _imm, _leader_imm, _leader_pf, _ou0
-from controllers.base import as_batch, as_mask
+from controllers.base import ObservationHold, as_batch, as_mask
 
 __all__ = ["EstimatorConfig", "TargetEstimate", "TargetEstimator", "MODELS", "propagate_mean"]
 
@@ -661,9 +661,12 @@ class TargetEstimator:
         #: recompute, e.g. to check that reuse changes nothing)
         self.reuse_peek = True
         self._peek: _Peek | None = None  # the last peek, dropped by the next commit
+        #: the recovery rule for non-finite observation fields (controllers.base.ObservationHold)
+        self.hold = ObservationHold(spec.dt)
 
     def reset(self) -> None:
         """Forget all envs: the next :meth:`step` starts every env fresh."""
+        self.hold.reset()
         self._s = None
         self._peek = None
         self._spare = None
@@ -852,13 +855,15 @@ class TargetEstimator:
             rel_x=np.where(valid, c * ex + s * ey, z), rel_y=np.where(valid, -s * ex + c * ey, z),
             rel_psi=np.where(valid, np.arctan2(np.sin(dpsi), np.cos(dpsi)), z), state=x, cov=P, age=T)
 
-    def _checked(self, observation, reset_mask):
+    def _checked(self, observation, reset_mask, commit: bool = True):
         obs, _ = as_batch(observation, (OBS_DIM, OBS_DIM_V1))
         n = obs.shape[0]
         mask = as_mask(reset_mask, n, "reset_mask")
         if self._s is None or self._s.x.shape[0] != n:
             mask = np.ones(n, dtype=bool)
             self._s = self._fresh(n)
+            self.hold.reset()
+        obs = self.hold(obs, mask, commit)
         return obs, (None if self.model in _NUMBA_MODELS else decode(obs)), mask
 
     def step(self, observation: np.ndarray, reset_mask: np.ndarray | None = None, *, commit: bool = True,
@@ -885,7 +890,7 @@ class TargetEstimator:
         Raises:
             ValueError: observation of a wrong shape, or a reset_mask of the wrong length.
         """
-        obs, o, mask = self._checked(observation, reset_mask)
+        obs, o, mask = self._checked(observation, reset_mask, commit)
         if self.model in _NUMBA_MODELS:
             obs = np.ascontiguousarray(obs, dtype=np.float64)
         if not commit:

@@ -16,6 +16,7 @@ import pandas as pd
 
 import auv_follow_env  # noqa: F401  (registers the ids)
 from agents.benchmark.leaderboard import leaderboard_markdown, plot_leaderboard
+from auv_follow_env._files import check_size
 from auv_follow_env._signals import deferred_signals
 
 
@@ -179,9 +180,10 @@ def load_result(out_dir: str | Path) -> BenchmarkResult:
     import pyarrow.parquet as pq
 
     out = Path(out_dir)
-    for name in ("episodes.parquet", "leaderboard.csv", "benchmark.json"):
-        if not (out / name).is_file():
+    for name in ("episodes.parquet", "leaderboard.csv", "benchmark.json", "traces.parquet"):
+        if name != "traces.parquet" and not (out / name).is_file():
             raise FileNotFoundError(f"{out / name} does not exist: run `auv-follow benchmark --out {out}`")
+        check_size(out / name, {".json": "text", ".csv": "table"}.get(Path(name).suffix, "parquet"))
     try:
         prov = json.loads((out / "benchmark.json").read_text())
         if not isinstance(prov, dict) or not isinstance(prov.get("config"), dict):

@@ -15,6 +15,7 @@ import numpy as np
 
 import auv_follow_env  # noqa: F401  (registers the ids)
 from agents.benchmark.protocol import resolve_tier
+from auv_follow_env._files import check_size
 
 
 @dataclass(frozen=True)
@@ -145,7 +146,7 @@ def _check_complete_run(run: Path, policy: str) -> None:
 
     cfg_path = run / "config.yaml"
     try:
-        cfg = yaml.safe_load(cfg_path.read_text())
+        cfg = yaml.safe_load(check_size(cfg_path, "text").read_text())
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
         raise ValueError(f"policy={policy!r}: {cfg_path} is not readable YAML ({type(exc).__name__})") from None
     result = cfg.get("result") if isinstance(cfg, dict) else None
@@ -270,8 +271,8 @@ def _residual_settings(spec: PolicySpec) -> set[tuple[str, str] | None]:
     found: set[tuple[str, str] | None] = set()
     for r in spec.runs:
         try:
-            cfg = yaml.safe_load((Path(r) / "config.yaml").read_text()) or {}
-        except (OSError, yaml.YAMLError):
+            cfg = yaml.safe_load(check_size(Path(r) / "config.yaml", "text").read_text()) or {}
+        except (OSError, yaml.YAMLError, ValueError):
             found.add(None)
             continue
         run = cfg.get("run", {}) if isinstance(cfg, dict) else {}

@@ -46,6 +46,8 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from auv_follow_env._files import check_size
+
 __all__ = ["SweepConfig", "SweepFailed", "SweepUnavailable", "sweep", "run_trial", "VALIDATION_SEEDS", "DEFAULT_GRID",
            "param_space"]
 
@@ -126,7 +128,7 @@ class SweepConfig:
         if not p.is_file():
             raise FileNotFoundError(f"sweep config {p} does not exist")
         try:
-            data = yaml.safe_load(p.read_text()) or {}
+            data = yaml.safe_load(check_size(p, "text").read_text()) or {}
         except (yaml.YAMLError, UnicodeDecodeError) as exc:
             raise ValueError(f"sweep config {p} is not valid YAML: {' '.join(str(exc).split())[:200]}") from None
         if not isinstance(data, dict):

@@ -40,6 +40,7 @@ import numpy as np
 
 from auv_follow_env.layout import LAYOUTS, OBS_DIM_V1, OBS_INDEX_V1, ObsField, decode
 from controllers import ALL_CONTROLLERS, DOB_TIME_CONSTANT, DisturbanceObserver, TargetEstimator, make_controller
+from controllers.base import ObservationHold
 from controllers.hierarchical import reference_point
 
 __all__ = ["ESTIMATOR_FIELDS", "ESTIMATOR_INDEX", "ESTIMATOR_DIM", "OBSERVATIONS", "ObservationBuilder",
@@ -219,6 +220,8 @@ class ObservationBuilder:
         self.dim = observation_dim(self.obs_width, mode, observation, self.include_base_action, self.history_len,
                                    self.action_filter)
         self._n: int | None = None
+        #: the recovery rule for non-finite observation fields (controllers.base.ObservationHold)
+        self.hold = ObservationHold(spec.dt)
         self.base_action: np.ndarray | None = None  #: (N, 3) float32, the base's action at the last observe
         self.base_forces: np.ndarray | None = None  #: (N, 3) float64, the base's command [N, N, N m]
         self.last_estimate: Any = None  #: the TargetEstimate behind the last estimator block
@@ -271,8 +274,12 @@ class ObservationBuilder:
             for part in (self.base, self.estimator, self.base_estimator, self.yaw_base):
                 if part is not None:
                     part.reset()
+            self.hold.reset()
             self._n = n
-        obs64 = np.asarray(obs, dtype=np.float64)
+        raw64 = np.asarray(obs, dtype=np.float64)
+        obs64 = self.hold(raw64, start)
+        if obs64 is not raw64:
+            obs = obs64  # a field held (controllers.base.ObservationHold)
         parts = [obs.astype(np.float32, copy=False)]
         if self.yaw_base is not None:
             self.yaw_action, _ = self.yaw_base.predict(obs64, episode_start=start)

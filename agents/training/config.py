@@ -18,6 +18,7 @@ import yaml
 import auv_follow_env
 from agents.training.history import DEFAULT_CONTROLLER, DEFAULT_HISTORY_LEN, DEFAULT_HISTORY_STRIDE, DEFAULT_SCALE
 from agents.training.residual import make_residual_wrapper
+from auv_follow_env._files import check_size
 
 ALGOS: tuple[str, ...] = ("ppo", "sac", "td3", "recurrentppo", "bppo")
 
@@ -149,7 +150,7 @@ def load_hyperparams(algo: str, env_id: str, path: str | Path | None = None,
     path = Path(path) if path is not None else HYPERPARAMS_DIR / f"{algo}.yml"
     if not path.is_file():
         raise FileNotFoundError(f"hyperparameter file {path} does not exist")
-    with open(path) as f:
+    with open(check_size(path, "text")) as f:
         table = yaml.safe_load(f) or {}
     if not isinstance(table, dict) or not all(isinstance(table.get(k) or {}, dict)
                                               for k in ("default", "residual", env_id)):

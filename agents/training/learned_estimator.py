@@ -331,6 +331,8 @@ class EstimatorAgent:
     """A learned-estimator run as a policy (SB3's ``predict`` over raw observations): the tracking
     law of PROPOSED_IMM_DOB on the learned estimator, built per env id on first use."""
 
+    env_wrapper = None  #: it reads raw observations: no wrapper (as a bppo agent)
+
     def __init__(self, weights: dict[str, Any], config: dict[str, Any], name: str | None = None) -> None:
         self.weights, self.config = weights, config
         run = config["run"]

@@ -18,6 +18,9 @@ from agents.training.obs_stats import (
 )
 from agents.training.residual import _wrapper
 from agents.training.rundir import _checkpoints, _failure, _run_config_path, read_run_config
+from auv_follow_env._files import check_size
+from auv_follow_env.layout import LAYOUTS
+from controllers.base import ObservationHold
 
 
 class Agent:
@@ -65,6 +68,24 @@ class Agent:
     def reset(self) -> None:
         """Forget the recurrent state: the next call starts every env afresh."""
         self._lstm, self._lstm_n = None, None
+        if getattr(self, "_hold", None) is not None:
+            self._hold.reset()
+
+    def _held(self, obs: np.ndarray, episode_start: Any) -> np.ndarray:
+        """A raw observation (scratch) with the recovery rule for non-finite fields applied
+        (controllers.base.ObservationHold); a residual agent's base applies it itself."""
+        if self.mode == "residual" or obs.shape[-1] not in LAYOUTS:
+            return obs
+        if getattr(self, "_hold", None) is None:
+            env = gym.make(self.env_id, **self.env_kwargs)
+            self._hold = ObservationHold(env.unwrapped.task_spec.dt)
+            env.close()
+        batch = np.asarray(obs, dtype=np.float64).reshape(-1, obs.shape[-1])
+        start = None if episode_start is None else np.asarray(episode_start, dtype=bool).reshape(-1)
+        if start is not None and start.shape != (batch.shape[0],):
+            start = None
+        out = self._hold(batch, start)
+        return obs if out is batch else out.astype(np.float32).reshape(obs.shape)
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool = True) -> tuple[np.ndarray, Any]:
@@ -78,7 +99,7 @@ class Agent:
                         "agent.env_wrapper(env)")
             raise ValueError(f"observation has shape {obs.shape}: this agent expects ({width},) or (N, {width})"
                              + hint)
-        obs = self.normalize(obs)
+        obs = self.normalize(self._held(obs, episode_start))
         if not self.recurrent:
             action, _ = self.model.predict(obs, deterministic=deterministic)
             return action, state
@@ -121,6 +142,7 @@ def load_agent(path: str | Path, name: str | None = None) -> Agent:
         hint = (f"; the run has no final model (interrupted or still training?): its newest checkpoint is "
                 f"{ckpts[-1]}" if ckpts else ": give a run directory or a model .zip")
         raise FileNotFoundError(f"model file {model_path} does not exist{hint}")
+    check_size(model_path, "model")
     cfg_path = _run_config_path(model_path)
     if cfg_path is None:
         raise FileNotFoundError(f"no config.yaml next to {model_path} or in {model_path.parent.parent}: "

@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from auv_follow_env._files import check_size
+
 __all__ = ["ObsStats", "FORMAT", "write_obs_stats", "read_obs_stats", "stats_from_vecnormalize",
            "json_path_for", "convert_pickle", "check_against_config", "main"]
 
@@ -104,7 +106,7 @@ def read_obs_stats(path: str | Path) -> ObsStats:
     if not path.is_file():
         raise FileNotFoundError(f"observation-normalisation statistics {path} do not exist")
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(check_size(path, "text").read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"{path} is not a normalisation-statistics JSON file: {exc}") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT:

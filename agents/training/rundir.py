@@ -16,6 +16,7 @@ import yaml
 import auv_follow_env
 from agents.training.config import ALGOS, MODES, _one_line
 from agents.training.obs_stats import _CKPT
+from auv_follow_env._files import check_size
 
 
 def versions() -> dict[str, str]:
@@ -69,7 +70,7 @@ def read_run_config(path: str | Path) -> dict[str, Any]:
     """
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(check_size(path, "text").read_text())
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path} is not valid YAML ({_one_line(exc)})") from None
     what = "a run configuration written by auv-follow train (a mapping with a 'run' section)"
@@ -122,7 +123,7 @@ def _write_atomic(path: Path, data: bytes) -> None:
 def _failure(cfg_path: Path) -> str | None:
     """``result.failed`` of a run's config.yaml (None if absent or unreadable)."""
     try:
-        res = (yaml.safe_load(cfg_path.read_text()) or {}).get("result")
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, AttributeError):
+        res = (yaml.safe_load(check_size(cfg_path, "text").read_text()) or {}).get("result")
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, AttributeError, ValueError):
         return None
     return str(res["failed"]) if isinstance(res, dict) and res.get("failed") else None
