@@ -32,6 +32,7 @@ import yaml
 import auv_follow_env
 from agents.training.config import ALGOS, MAX_N_ENVS, MODES, ConfigError, TrainConfig, TrainingInterrupted
 from agents.training.history import DEFAULT_CONTROLLER, DEFAULT_HISTORY_LEN, DEFAULT_HISTORY_STRIDE, DEFAULT_SCALE
+from auv_follow_env._signals import exit_code, stop_name, stop_on_signals
 
 __all__ = ["main", "build_parser"]
 
@@ -365,8 +366,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``auv-follow`` console script."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if getattr(args, "handler", None) is not None:  # benchmark, report, sweep
-        return _run_handler(args, parser)
+    with stop_on_signals():  # SIGTERM and SIGHUP take Ctrl-C's path: save, keep, resume
+        if getattr(args, "handler", None) is not None:  # benchmark, report, sweep
+            return _run_handler(args, parser)
+        return _run_training_command(args)
+
+
+def _run_training_command(args: argparse.Namespace) -> int:
     try:
         {"train": _train, "evaluate": _evaluate, "compare": _compare}[args.command](args)
     except _Refused as exc:
@@ -374,14 +380,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"auv-follow {args.command}: error: argument {flag}: {msg}", file=sys.stderr)
         raise SystemExit(2) from None
     except TrainingInterrupted as exc:
-        print(f"auv-follow train: interrupted; run directory: {exc.run}", file=sys.stderr)
-        return 130
+        print(f"auv-follow train: interrupted{stop_name()}; run directory: {exc.run} (continue it with the "
+              f"same command and --resume {Path(exc.run) / 'model.zip'})", file=sys.stderr)
+        return exit_code()
     except OSError as exc:  # a write failed (full disk, read-only file system)
         print(f"auv-follow {args.command}: error: {_os_error_text(exc)}", file=sys.stderr)
         raise SystemExit(1) from None
-    except KeyboardInterrupt:
-        print(f"auv-follow {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        print(f"auv-follow {args.command}: interrupted{stop_name(exc)}", file=sys.stderr)
+        return exit_code(exc)
     return 0
 
 
@@ -471,8 +478,12 @@ def _cmd_benchmark(args: argparse.Namespace) -> None:
     import shlex
 
     from agents.benchmark.leaderboard import benchmark_summary
-    from agents.benchmark.run import benchmark
+    from agents.benchmark.run import benchmark, resolve_tiers
 
+    try:
+        resolve_tiers(args.tiers)
+    except ValueError as exc:
+        raise _Refused("--tiers", str(exc)) from None
     if args.out is None:
         args.out = SCRATCH_BENCH
         print(f"writing to {SCRATCH_BENCH} (ignored by git); give --out to choose the place", file=sys.stderr)
@@ -544,11 +555,11 @@ def _run_handler(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
     except OSError as exc:  # a write failed (full disk, read-only file system): nothing half-written is kept
         print(f"auv-follow {args.command}: error: {_os_error_text(exc)}", file=sys.stderr)
         raise SystemExit(1) from None
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         # benchmark and report replace their files as one set (agents.benchmark.replace_set, report's rename)
         tail = "run the same command again to resume" if args.command == "sweep" else "nothing half-written was kept"
-        print(f"auv-follow {args.command}: interrupted ({tail})", file=sys.stderr)
-        return 130
+        print(f"auv-follow {args.command}: interrupted{stop_name(exc)} ({tail})", file=sys.stderr)
+        return exit_code(exc)
     except MemoryError:
         print(f"auv-follow {args.command}: error: out of memory: use fewer seeds or policies", file=sys.stderr)
         raise SystemExit(2) from None

@@ -337,23 +337,35 @@ def test_progress_lines_count_what_was_collected_and_have_no_escape_codes():
 
 # --- Ctrl-C -----------------------------------------------------------------------------------------
 
-def test_ctrl_c_saves_model_stats_and_records_interruption(tmp_path):
+def _default_stop_signals() -> None:
+    """(In the child, before exec) SIGTERM and SIGHUP as a terminal leaves them: a test run under
+    nohup would otherwise pass SIGHUP on ignored."""
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_DFL)
+
+
+@pytest.mark.parametrize(("algo", "sig", "code"), [
+    ("ppo", signal.SIGINT, 130), ("ppo", signal.SIGTERM, 143), ("bppo", signal.SIGHUP, 129),
+    ("bppo", signal.SIGTERM, 143)])
+def test_ctrl_c_saves_model_stats_and_records_interruption(tmp_path, algo, sig, code):
+    """Ctrl-C, and SIGTERM (a scheduler, `timeout`) or SIGHUP (a closed terminal) alike (issue 51 E6):
+    the model, its statistics and config.yaml with result.interrupted, the shell's 128 + signal code."""
     run = tmp_path / "int"
-    argv = [sys.executable, "-m", "agents.cli", "train", "--mode", "scratch", "--timesteps", "100000000",
-            "--n-envs", "2", "--hp", "n_steps=64", "--hp", "batch_size=64", "--hp", "n_epochs=1",
+    argv = [sys.executable, "-m", "agents.cli", "train", "--algo", algo, "--mode", "scratch", "--timesteps",
+            "100000000", "--n-envs", "2", "--hp", "n_steps=64", "--hp", "batch_size=64", "--hp", "n_epochs=1",
             "--checkpoint-freq", "256", "--eval-freq", "0", "--no-tensorboard", "--no-progress",
             "--out", str(tmp_path), "--run-name", "int"]
     proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_default_stop_signals)
     deadline = time.monotonic() + 120
     while not list((run / "checkpoints").glob("model_*_steps.zip")):
         assert proc.poll() is None, proc.communicate()
         assert time.monotonic() < deadline, "training did not start"
         time.sleep(0.2)
     time.sleep(0.5)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     out, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
+    assert proc.returncode == code, err
     assert "Traceback" not in err and "interrupted" in err
     assert (run / "model.zip").is_file() and (run / "vecnormalize.json").is_file()
     result = yaml.safe_load((run / "config.yaml").read_text())["result"]

@@ -6,7 +6,6 @@ from __future__ import annotations
 import contextlib
 import json
 import platform
-import signal
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,7 +16,7 @@ import pandas as pd
 import auv_follow_env  # noqa: F401  (registers the ids)
 from agents.benchmark.leaderboard import leaderboard_markdown, plot_leaderboard
 from auv_follow_env._files import check_size
-from auv_follow_env._signals import deferred_signals
+from auv_follow_env._signals import STOP_SIGNALS, deferred_signals
 
 
 def provenance(config: Mapping[str, Any]) -> dict[str, Any]:
@@ -89,7 +88,7 @@ def replace_set(stage: Path, out: Path, names: Sequence[str]) -> dict[str, Path]
     aside = Path(tempfile.mkdtemp(prefix=".benchmark-previous-", dir=out))
     moved: list[str] = []
     placed: list[str] = []
-    with deferred_signals((signal.SIGINT,)):  # (delivered when the files are in place)
+    with deferred_signals(STOP_SIGNALS):  # (delivered when the files are in place)
         try:
             for name in names:
                 if os.path.lexists(out / name):

@@ -38,6 +38,23 @@ from agents.benchmark.stats import DEFAULT_BOOTSTRAP_SEED, DEFAULT_RESAMPLES, MA
 from agents.benchmark.traces import replay_traces
 
 
+def resolve_tiers(tiers: Iterable[str] | str) -> list[str]:
+    """Tier names for tier names or ids, each at most once (issue 51 E15).
+
+    Raises:
+        ValueError: an unknown tier, or one given twice (by name or id).
+    """
+    given = [tiers] if isinstance(tiers, str) else list(tiers)
+    names = [resolve_tier(t)[0] for t in given]
+    seen: dict[str, str] = {}
+    for g, n in zip(given, names, strict=True):
+        if n in seen:
+            also = f" (as {seen[n]!r} and {g!r})" if seen[n] != g else ""
+            raise ValueError(f"tiers={given!r} names tier {n!r} twice{also}: give each tier once")
+        seen[n] = g
+    return names
+
+
 def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: Iterable[str] = ("S4",), *,
               seeds: Mapping[str, Sequence[int]] | Sequence[int] | None = None, out_dir: str | Path | None = None,
               n_resamples: int = DEFAULT_RESAMPLES, bootstrap_seed: int = DEFAULT_BOOTSTRAP_SEED,
@@ -72,7 +89,7 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
     """
     import controllers as ctl
 
-    tiers = [resolve_tier(t)[0] for t in ([tiers] if isinstance(tiers, str) else tiers)]
+    tiers = resolve_tiers(tiers)
     leader = "+".join(t for t in tiers if t in LEADER_TIERS)
     items: list[Any] = []
     for p in (list(policies) if policies is not None else [CLASSICAL]):

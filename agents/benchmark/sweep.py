@@ -35,9 +35,13 @@ e.g. ``auv-follow benchmark --policies best=<run_dir>``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
+import signal
+import threading
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,6 +51,7 @@ import pandas as pd
 import yaml
 
 from auv_follow_env._files import check_size
+from auv_follow_env._signals import STOP_SIGNALS, SignalStop, record_stop
 
 __all__ = ["SweepConfig", "SweepFailed", "SweepUnavailable", "sweep", "run_trial", "VALIDATION_SEEDS", "DEFAULT_GRID",
            "param_space"]
@@ -250,6 +255,72 @@ def run_trial(config: dict[str, Any]) -> None:
     shutil.rmtree(work, ignore_errors=True)  # everything kept is in Tune's checkpoints
 
 
+#: SweepConfig fields that do not change what a sweep trains (a resume may differ in them)
+_RUN_ONLY_FIELDS = ("name", "storage", "address", "resume", "verbose", "fail_once_marker", "cpus_per_trial",
+                    "max_failures")
+
+
+def _settings(cfg: SweepConfig) -> dict[str, Any]:
+    return json.loads(json.dumps(asdict(cfg), default=str))
+
+
+def _write_settings(cfg: SweepConfig, exp: Path) -> None:
+    tmp = exp / "sweep.yaml.tmp"
+    tmp.write_text(yaml.safe_dump(_settings(cfg), sort_keys=False))
+    os.replace(tmp, exp / "sweep.yaml")
+
+
+def _check_same_settings(cfg: SweepConfig, exp: Path) -> None:
+    """Refuse to resume ``exp`` with settings that change what is trained (issue 51 E8): a restored
+    experiment keeps the search space and budgets it was started with."""
+    path = check_size(exp / "sweep.yaml", "text")
+    if not path.is_file():
+        raise ValueError(f"sweep {cfg.name!r} in {exp.parent} exists but has no sweep.yaml recording its settings: "
+                         "give --no-resume to start it afresh, or another --name")
+    try:
+        old = yaml.safe_load(path.read_text()) or {}
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path} is not valid YAML ({' '.join(str(exc).split())[:200]})") from None
+    new = _settings(cfg)
+    changed = [k for k in new if k not in _RUN_ONLY_FIELDS and old.get(k) != new[k]] if isinstance(old, dict) else ["*"]
+    if changed:
+        what = "; ".join(f"{k}: {old.get(k)!r} then, {new[k]!r} now" for k in changed[:4]) if changed != ["*"] else (
+            f"{path} is not a mapping")
+        raise ValueError(f"sweep {cfg.name!r} in {exp.parent} was started with other settings ({what}): resuming it "
+                         "would train and print the old ones; give --no-resume to start it afresh, or another --name")
+
+
+@contextlib.contextmanager
+def _stop_tune_gracefully() -> Iterator[list[int]]:
+    """Ctrl-C, SIGTERM and SIGHUP during ``Tuner.fit`` ask Tune to save its state and return (its
+    SIGUSR1 path; Ray's own SIGTERM handler would abort the driver); a second signal raises at once.
+    Yields the list of stop signals received."""
+    stops: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield stops
+        return
+
+    def handler(signum, frame) -> None:  # noqa: ARG001 - a signal handler's signature
+        record_stop(signum)
+        stops.append(signum)
+        if len(stops) > 1:
+            raise SignalStop(signum) if signum != signal.SIGINT else KeyboardInterrupt()
+        os.kill(os.getpid(), signal.SIGUSR1)
+
+    before = os.environ.get("TUNE_DISABLE_SIGINT_HANDLER")
+    os.environ["TUNE_DISABLE_SIGINT_HANDLER"] = "1"  # ours forwards it
+    previous = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS if signal.getsignal(sig) is not signal.SIG_IGN}
+    try:
+        yield stops
+    finally:
+        for sig, h in previous.items():
+            signal.signal(sig, h)
+        if before is None:
+            os.environ.pop("TUNE_DISABLE_SIGINT_HANDLER", None)
+        else:
+            os.environ["TUNE_DISABLE_SIGINT_HANDLER"] = before
+
+
 def _init_ray(address: str | None) -> None:
     import ray
 
@@ -282,9 +353,15 @@ def sweep(cfg: SweepConfig) -> pd.DataFrame:
 
     storage = cfg.storage if "://" in cfg.storage else str(Path(cfg.storage).resolve())
     exp = Path(storage) / cfg.name
+    restore = cfg.resume and tune.Tuner.can_restore(str(exp))
+    if restore:
+        _check_same_settings(cfg, exp)
     _init_ray(cfg.address)
     trainable = tune.with_resources(run_trial, {"cpu": cfg.cpus_per_trial})
-    if cfg.resume and tune.Tuner.can_restore(str(exp)):
+    if "://" not in storage:  # what was asked, for a later resume to compare (also rewritten at the end)
+        exp.mkdir(parents=True, exist_ok=True)
+        _write_settings(cfg, exp)
+    if restore:
         tuner = tune.Tuner.restore(str(exp), trainable, resume_unfinished=True, resume_errored=True)
     else:
         run_config = tune.RunConfig(
@@ -294,7 +371,10 @@ def sweep(cfg: SweepConfig) -> pd.DataFrame:
         tuner = tune.Tuner(trainable, param_space=param_space(cfg),
                            tune_config=tune.TuneConfig(num_samples=cfg.num_samples),
                            run_config=run_config)
-    results = tuner.fit()
+    with _stop_tune_gracefully() as stops:
+        results = tuner.fit()
+    if stops:  # Tune saved its state and returned: the experiment is unfinished, resumable
+        raise SignalStop(stops[0]) if stops[0] != signal.SIGINT else KeyboardInterrupt()
     errors = [r.error for r in results if r.error is not None]
     if len(errors) == len(results):
         first = " ".join(str(errors[0]).split())[-400:] if errors else "no trials ran"
@@ -315,8 +395,7 @@ def sweep(cfg: SweepConfig) -> pd.DataFrame:
     if "://" not in storage:
         exp.mkdir(parents=True, exist_ok=True)
         df.to_csv(exp / "trials.csv", index=False)
-        (exp / "sweep.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(asdict(cfg), default=str)),
-                                                       sort_keys=False))
+        _write_settings(cfg, exp)
     df.attrs["errors"] = len(errors)
     if errors:
         print(f"{len(errors)} trial(s) errored; run the same command again to resume them: {errors[0]}")

@@ -572,12 +572,9 @@ class BatchedAgent:
 
 
 def _load_model_file(path: Path) -> dict[str, Any]:
-    import torch
+    from agents.training.rundir import load_torch_file
 
-    try:
-        data = torch.load(str(path), map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 (zip, pickle and torch errors alike)
-        raise ValueError(f"{path} is not a bppo model file torch can load: {type(exc).__name__}: {exc}") from None
+    data = load_torch_file(path, "a bppo model file")
     if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT:
         got = data.get("format") if isinstance(data, dict) else type(data).__name__
         raise ValueError(f"{path} is not a bppo model: format={got!r}, expected {MODEL_FORMAT!r}")

@@ -370,12 +370,10 @@ def load_estimator_agent(model_path: str | Path, config: dict[str, Any], name: s
     Raises:
         ValueError: the file is not a learned-estimator model (names it).
     """
-    import torch
 
-    try:
-        w = torch.load(str(model_path), map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 (zipfile, pickle and torch errors alike)
-        raise ValueError(f"{model_path} is not a learned-estimator model torch can load: {exc}") from None
+    from agents.training.rundir import load_torch_file
+
+    w = load_torch_file(model_path, "a learned-estimator model")
     if not isinstance(w, dict) or w.get("format") != MODEL_FORMAT:
         raise ValueError(f"{model_path} is not a learned-estimator model (format "
                          f"{w.get('format') if isinstance(w, dict) else None!r}, expected {MODEL_FORMAT!r})")

@@ -152,8 +152,14 @@ def load_agent(path: str | Path, name: str | None = None) -> Agent:
         from agents.training.learned_estimator import load_estimator_agent
 
         return load_estimator_agent(model_path, config, name=name)
+    _check_env(config, cfg_path)
     stats = None
     norm = config.get("normalize")
+    if norm is None and _stats_path(model_path, ".json").is_file():
+        raise ValueError(f"{cfg_path} records no normalize section, but {_stats_path(model_path, '.json')} beside "
+                         f"{model_path} holds observation statistics: the model was trained with normalisation and "
+                         "its configuration was edited or cut; restore the normalize section (or remove the "
+                         "statistics file if the model truly reads raw observations)")
     if norm is not None and norm.get("norm_obs", True):
         json_path = _stats_path(model_path, ".json")
         if not json_path.is_file():
@@ -178,6 +184,17 @@ def load_agent(path: str | Path, name: str | None = None) -> Agent:
         raise ValueError(f"{_stats_path(model_path, '.json')} has statistics for {stats.mean.shape} observations, "
                          f"the model observes {model.observation_space.shape}")
     return Agent(model, config, stats, name=name)
+
+
+def _check_env(config: dict[str, Any], cfg_path: Path) -> None:
+    """The run's env id and keywords make an env, or a one-line ValueError naming the file (issue 51
+    E13); read_run_config has checked that the id is registered."""
+    run = config["run"]
+    try:
+        gym.make(run["env_id"], **(run.get("env_kwargs") or {})).close()
+    except Exception as exc:  # noqa: BLE001 (any refusal of the env settings)
+        raise ValueError(f"{cfg_path}: run.env_kwargs={run.get('env_kwargs')!r} are refused by {run['env_id']}: "
+                         f"{_one_line(exc)}") from None
 
 
 def evaluate_agent(agent: Agent | str | Path, seeds: Any = range(1000, 1010), *, env_id: str | None = None,

@@ -14,7 +14,7 @@ import numpy as np
 import yaml
 
 import auv_follow_env
-from agents.training.config import ALGOS, MODES, _one_line
+from agents.training.config import ALGOS, MODES, _one_line, check_env_id
 from agents.training.obs_stats import _CKPT
 from auv_follow_env._files import check_size
 
@@ -82,6 +82,10 @@ def read_run_config(path: str | Path) -> dict[str, Any]:
             raise ValueError(f"{path}: run.{key}={run.get(key)!r} is invalid: must be one of {list(valid)}")
     if not isinstance(run.get("env_id"), str):
         raise ValueError(f"{path}: run.env_id={run.get('env_id')!r} is invalid: must be an env id")
+    try:  # a registered id, never "module:Env" (gymnasium would import the module): issue 51 E11
+        check_env_id(run["env_id"], allow_any=run["mode"] == "scratch")
+    except ValueError as exc:
+        raise ValueError(f"{path}: run.{exc}") from None
     if run.get("env_kwargs") is not None and not isinstance(run["env_kwargs"], dict):
         raise ValueError(f"{path}: run.env_kwargs={run['env_kwargs']!r} is invalid: must be a mapping")
     if run["mode"] == "residual" and not isinstance(data.get("residual"), dict):
@@ -89,6 +93,26 @@ def read_run_config(path: str | Path) -> dict[str, Any]:
     if data.get("normalize") is not None and not isinstance(data["normalize"], dict):
         raise ValueError(f"{path}: normalize={data['normalize']!r} is invalid: must be a mapping or null")
     return data
+
+
+def load_torch_file(path: str | Path, what: str) -> Any:
+    """``torch.load(path, weights_only=True)`` (tensors and plain containers only, nothing
+    unpickled), or a one-line ValueError naming the file and ``what`` it should be (issue 51 E12:
+    never torch's advice to load it with ``weights_only=False``)."""
+    import zipfile
+
+    import torch
+
+    path = check_size(path, "model")
+    if not zipfile.is_zipfile(path):
+        raise ValueError(f"{path} is not {what}: not a zip archive (torch's file format)")
+    try:
+        return torch.load(str(path), map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 (zipfile, pickle and torch errors alike)
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        if "weights_only" in first or "Weights only load failed" in first:
+            first = "it holds objects other than tensors and plain containers, which are never unpickled"
+        raise ValueError(f"{path} is not {what}: {type(exc).__name__}: {first[:200]}") from None
 
 
 def _record_failure(run: Path, resolved: dict, steps: int, start: int, reason: str) -> None:

@@ -74,6 +74,13 @@ def _check_resume(cfg: TrainConfig, residual: dict | None) -> None:
     if run["mode"] != cfg.mode:
         raise ConfigError("resume_from", f"resume_from={cfg.resume_from!r} was trained in mode={run['mode']!r} "
                                          f"({cpath}): resume it with mode={run['mode']!r}, not {cfg.mode!r}")
+    for key, now in (("env_id", cfg.env_id), ("env_kwargs", dict(cfg.env_kwargs or {}))):
+        was = run.get(key) if key == "env_id" else dict(run.get(key) or {})
+        if was != now:
+            raise ConfigError("resume_from", f"resume_from={cfg.resume_from!r} was trained with {key}={was!r} "
+                                             f"({cpath}), this run asks for {now!r}: a resumed run continues the same "
+                                             "task (to fine-tune on another, start a new run from the model with "
+                                             "agents.training's API)")
     if residual is not None:
         for key in ("include_base_action", "history_len", "history_stride", "controller", "scale"):
             if key in old["residual"] and old["residual"][key] != residual[key]:
@@ -272,12 +279,45 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
     return (run, model) if return_model else run
 
 
-def _check_bppo_resume(cfg: TrainConfig, plan: _Plan, obs_dim: int, error_cols: list[int]) -> int:
-    """Refuse a bppo checkpoint that cannot continue this run (another observation width or
-    policy_kwargs, missing or unfit observation statistics, the reference-error fields
-    (``error_cols``) normalised the other way); returns its steps. Runs before anything is written."""
+#: a bppo run's hyperparameters that change its reward: a resumed run must keep them
+_REWARD_HP = ("action_rate_coef", "heading_coef", "yaw_rate_coef")
+
+
+def _check_same_policy(cfg: TrainConfig, plan: _Plan, observation: dict[str, Any]) -> None:
+    """Refuse a bppo checkpoint trained with another policy interface (the builder's resolved
+    ``observation`` section of its config.yaml: base controller, observation, history, action
+    filter, ``yaw_from``, ...) or another reward (:data:`_REWARD_HP`): issue 51 E7."""
+    from agents.training.batched_ppo import BatchedPPO
+
+    cpath = _run_config_path(Path(cfg.resume_from))
+    if cpath is None:
+        return
+    old = read_run_config(cpath)
+    was_obs = {"action_filter": 1.0, "yaw_from": None, **(old.get("observation") or {})}
+    now_obs = {"action_filter": 1.0, "yaw_from": None, **observation}
+    diff = [k for k in sorted(set(was_obs) | set(now_obs)) if was_obs.get(k) != now_obs.get(k)]
+    defaults = BatchedPPO().__dict__
+    was_hp = {k: (old.get("training") or {}).get(k, (old.get("hyperparams") or {}).get(k, defaults.get(k)))
+              for k in _REWARD_HP}
+    now_hp = {k: plan.hp.get(k, defaults.get(k)) for k in _REWARD_HP}
+    diff_hp = [k for k in _REWARD_HP if was_hp[k] is not None and now_hp[k] is not None
+               and float(was_hp[k]) != float(now_hp[k])]
+    if diff or diff_hp:
+        parts = [f"{k}={was_obs.get(k)!r} (now {now_obs.get(k)!r})" for k in diff]
+        parts += [f"{k}={was_hp[k]!r} (now {now_hp[k]!r})" for k in diff_hp]
+        raise ConfigError("resume_from", f"resume_from={cfg.resume_from!r} was trained with {', '.join(parts)} "
+                                         f"({cpath}): resume it with the checkpoint's settings")
+
+
+def _check_bppo_resume(cfg: TrainConfig, plan: _Plan, obs_dim: int, error_cols: list[int],
+                       observation: dict[str, Any] | None = None) -> int:
+    """Refuse a bppo checkpoint that cannot continue this run (another observation width, policy
+    interface, reward or policy_kwargs, missing or unfit observation statistics, the reference-error
+    fields (``error_cols``) normalised the other way); returns its steps. Runs before anything is written."""
     from agents.training.batched_ppo import OBS_ERROR_NORM_DEFAULT, _load_model_file, _policy_kwargs
 
+    if observation is not None:
+        _check_same_policy(cfg, plan, observation)
     path = Path(cfg.resume_from)
     try:
         data = _load_model_file(path)
@@ -351,9 +391,9 @@ def _train_batched(cfg: TrainConfig, plan: _Plan, return_model: bool):
         trial = BatchedTrainEnv(cfg.env_id, 1, seed=cfg.seed, env_kwargs=cfg.env_kwargs, builder=builder)
     except ValueError as exc:
         raise ConfigError("observation", f"the observation settings are refused: {_one_line(exc)}") from None
-    obs_dim, error_cols = trial.obs_dim, list(trial.builder.error_indices)
+    obs_dim, error_cols, observation = trial.obs_dim, list(trial.builder.error_indices), dict(builder)
     trial.close()
-    start = _check_bppo_resume(cfg, plan, obs_dim, error_cols) if cfg.resume_from is not None else 0
+    start = _check_bppo_resume(cfg, plan, obs_dim, error_cols, observation) if cfg.resume_from is not None else 0
     run = plan.run
     created = not run.exists()
     checkpoint_freq, eval_freq = cfg.resolved_freqs()

@@ -78,24 +78,31 @@ def _wall_clock_callback(max_seconds: float):
 
 
 class _StopOnSigint:
-    """Ctrl-C (SIGINT) during ``learn`` asks training to stop at the next step instead of
-    raising wherever the signal lands (inside torch, numba or a library that catches and
+    """Ctrl-C (SIGINT; SIGTERM and SIGHUP under the CLI) during ``learn`` asks training to stop at
+    the next step instead of raising wherever the signal lands (inside torch, numba or a library that catches and
     continues, which made an interrupt occasionally ineffective). A second Ctrl-C raises
     KeyboardInterrupt at once. Only installed in the main thread."""
 
     def __init__(self) -> None:
         self.requested = False
-        self._old: Any = None
+        self._old: dict[int, Any] = {}
 
     def __enter__(self) -> _StopOnSigint:
         import signal
         import threading
 
+        self._old = {}
         if threading.current_thread() is threading.main_thread():
-            self._old = signal.signal(signal.SIGINT, self._handle)
+            # SIGINT, and SIGTERM/SIGHUP where the command made them stop it (auv_follow_env._signals)
+            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+                if sig == signal.SIGINT or callable(signal.getsignal(sig)):
+                    self._old[sig] = signal.signal(sig, self._handle)
         return self
 
     def _handle(self, signum: int, frame: Any) -> None:
+        from auv_follow_env._signals import record_stop
+
+        record_stop(signum)
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
@@ -103,8 +110,8 @@ class _StopOnSigint:
     def __exit__(self, *exc: Any) -> None:
         import signal
 
-        if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
 
     def callback(self):
         from stable_baselines3.common.callbacks import BaseCallback
