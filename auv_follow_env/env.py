@@ -222,7 +222,9 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ## Version History
 
-    * v1: the acoustic link, random target, current and thrusters; four tiers with test seeds.
+    * v1: the acoustic link, random target, current and thrusters; the tiers Easy, Medium, Hard and
+      Extreme, and the Leader tiers (Leader-Easy, -Medium, -Hard: a target that switches between hidden
+      manoeuvre modes), each with published test seeds (``auv_follow_env.ALL_TIERS``).
     * v0: initial release (the paper's task; frozen).
     """
 

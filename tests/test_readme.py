@@ -70,3 +70,18 @@ def test_documents_link_only_inside_the_repository(doc):
         if re.match(r"[a-z]+://", target):
             continue
         assert (doc.parent / target).resolve().is_file(), f"{doc.name} links to missing {target}"
+
+
+def test_the_readme_commands_work_in_a_fresh_shell_after_the_set_up():
+    """As a newcomer types them after `bash scripts/setup.sh`: a login-less shell with only the system
+    PATH, the README's activation line, then the README's first commands (issue 52: `auv-follow: command
+    not found`, then "No module named 'gymnasium'")."""
+    text = README.read_text()
+    activate = re.search(r"^(\. \.venv/bin/activate)\b", text, flags=re.M)
+    assert activate, "README.md gives no line that activates .venv"
+    if not (ROOT / ".venv" / "bin" / "activate").is_file():
+        pytest.skip("no .venv in this checkout (the README's set-up makes it)")
+    script = f"{activate.group(1)} && auv-follow --help >/dev/null && python -c 'import gymnasium, auv_follow_env'"
+    out = subprocess.run(["env", "-i", "PATH=/usr/bin:/bin", f"HOME={os.environ.get('HOME', '/tmp')}", "bash",
+                          "--noprofile", "--norc", "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]

@@ -199,18 +199,19 @@ def goal_check(board: pd.DataFrame, tier: str = "Hard", metric: str = "true_stea
             "met": bool(change <= -reduction and separated)}
 
 
-def _goal_words(g: Mapping[str, Any]) -> str:
-    return (f"goal (best learned >= 30 % below the best classical, CIs apart): {'met' if g['met'] else 'not met'}, "
-            f"{g['best_learned']} {g['change_pct']:+.1f} % vs {g['best_classical']}, "
-            f"CIs {'overlap' if not g.get('cis_apart', g['cis_separated']) else 'apart'}")
+def _learned_words(g: Mapping[str, Any]) -> str:
+    """The best learned policy against the best classical one, in numbers only."""
+    apart = g.get("cis_apart", g["cis_separated"])
+    return (f"best learned {g['best_learned']}: {g['change_pct']:+.1f} % against the best classical "
+            f"{g['best_classical']}, 95 % CIs {'apart' if apart else 'overlap'}")
 
 
 def benchmark_summary(board: pd.DataFrame, files: Mapping[str, Path] | None = None, *, top: int = 5,
                       metric: str = "true_steady_mean") -> str:
     """A few lines for the terminal: per tier the ``top`` policies by the IQM of ``metric``
-    (label, IQM with its 95 % CI, kind), the floors (reference rows) on one line, the goal
-    check in words where the tier has a learned and a classical policy, and where the full
-    files are."""
+    (label, IQM with its 95 % CI, kind), the floors (reference rows) on one line, the best
+    learned policy's change against the best classical one where the tier has both, and where
+    the full files are."""
     def one_line(x: Any, width: int = 48) -> str:
         text = " ".join(str(x).split())
         return text if len(text) <= width else text[: width - 3] + "..."
@@ -235,7 +236,7 @@ def benchmark_summary(board: pd.DataFrame, files: Mapping[str, Path] | None = No
             lines.append("  floors: " + ", ".join(f"{one_line(r['policy'])} {ci(r)}" for _, r in refs.iterrows()))
         g = goal_check(board, str(tier), metric)
         if g["met"] is not None:
-            lines.append("  " + _goal_words(g))
+            lines.append("  " + _learned_words(g))
     if files:
         md = files.get("leaderboard_md")
         rest = [Path(p).name for k, p in files.items() if k != "leaderboard_md"]
