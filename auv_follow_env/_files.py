@@ -1,6 +1,6 @@
 """Size limits on the files a user gives us (run directories, benchmark folders, sweep state, link
 traces): a file above its limit is refused by name before it is read, so a huge or sparse file
-costs a stat, not the machine's memory (issue 51 E5)."""
+costs a stat, not the machine's memory."""
 
 from __future__ import annotations
 

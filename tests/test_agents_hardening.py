@@ -348,7 +348,7 @@ def _default_stop_signals() -> None:
     ("ppo", signal.SIGINT, 130), ("ppo", signal.SIGTERM, 143), ("bppo", signal.SIGHUP, 129),
     ("bppo", signal.SIGTERM, 143)])
 def test_ctrl_c_saves_model_stats_and_records_interruption(tmp_path, algo, sig, code):
-    """Ctrl-C, and SIGTERM (a scheduler, `timeout`) or SIGHUP (a closed terminal) alike (issue 51 E6):
+    """Ctrl-C, and SIGTERM (a scheduler, `timeout`) or SIGHUP (a closed terminal) alike (train_sigterm.sh):
     the model, its statistics and config.yaml with result.interrupted, the shell's 128 + signal code."""
     run = tmp_path / "int"
     argv = [sys.executable, "-m", "agents.cli", "train", "--algo", algo, "--mode", "scratch", "--timesteps",

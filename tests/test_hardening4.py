@@ -1,4 +1,4 @@
-"""Hardening IV (issue 51): each test names the reproducer in ../shared/reproducers/hardening4/ whose
+"""Hardening IV: each test names the reproducer in ../shared/reproducers/hardening4/ whose
 input it is built on. The recovery rule for non-finite observations (E16, item 3) is in
 test_nonfinite_obs.py; SIGTERM and SIGHUP to training in test_agents_hardening.py."""
 

@@ -1,5 +1,5 @@
 """The recovery rule for observations with a non-finite field (docs/api.md#non-finite-observations,
-issue 51 E16 and item 3): a NaN or inf field is held at its last finite value for that step, a
+estimator_nan_poison.py): a NaN or inf field is held at its last finite value for that step, a
 packet with a non-finite field is dropped, an episode's first observation with one is refused,
 and nothing non-finite outlives its step, for every controller on every tier kind."""
 

@@ -74,7 +74,7 @@ def test_documents_link_only_inside_the_repository(doc):
 
 def test_the_readme_commands_work_in_a_fresh_shell_after_the_set_up():
     """As a newcomer types them after `bash scripts/setup.sh`: a login-less shell with only the system
-    PATH, the README's activation line, then the README's first commands (issue 52: `auv-follow: command
+    PATH, the README's activation line, then the README's first commands (they failed with `auv-follow: command
     not found`, then "No module named 'gymnasium'")."""
     text = README.read_text()
     activate = re.search(r"^(\. \.venv/bin/activate)\b", text, flags=re.M)

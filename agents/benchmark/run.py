@@ -39,7 +39,7 @@ from agents.benchmark.traces import replay_traces
 
 
 def resolve_tiers(tiers: Iterable[str] | str) -> list[str]:
-    """Tier names for tier names or ids, each at most once (issue 51 E15).
+    """Tier names for tier names or ids, each at most once.
 
     Raises:
         ValueError: an unknown tier, or one given twice (by name or id).

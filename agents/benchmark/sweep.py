@@ -271,7 +271,7 @@ def _write_settings(cfg: SweepConfig, exp: Path) -> None:
 
 
 def _check_same_settings(cfg: SweepConfig, exp: Path) -> None:
-    """Refuse to resume ``exp`` with settings that change what is trained (issue 51 E8): a restored
+    """Refuse to resume ``exp`` with settings that change what is trained: a restored
     experiment keeps the search space and budgets it was started with."""
     path = check_size(exp / "sweep.yaml", "text")
     if not path.is_file():

@@ -187,8 +187,8 @@ def load_agent(path: str | Path, name: str | None = None) -> Agent:
 
 
 def _check_env(config: dict[str, Any], cfg_path: Path) -> None:
-    """The run's env id and keywords make an env, or a one-line ValueError naming the file (issue 51
-    E13); read_run_config has checked that the id is registered."""
+    """The run's env id and keywords make an env, or a one-line ValueError naming the file;
+    read_run_config has checked that the id is registered."""
     run = config["run"]
     try:
         gym.make(run["env_id"], **(run.get("env_kwargs") or {})).close()

@@ -82,7 +82,7 @@ def read_run_config(path: str | Path) -> dict[str, Any]:
             raise ValueError(f"{path}: run.{key}={run.get(key)!r} is invalid: must be one of {list(valid)}")
     if not isinstance(run.get("env_id"), str):
         raise ValueError(f"{path}: run.env_id={run.get('env_id')!r} is invalid: must be an env id")
-    try:  # a registered id, never "module:Env" (gymnasium would import the module): issue 51 E11
+    try:  # a registered id, never "module:Env" (gymnasium would import the module)
         check_env_id(run["env_id"], allow_any=run["mode"] == "scratch")
     except ValueError as exc:
         raise ValueError(f"{path}: run.{exc}") from None
@@ -97,8 +97,8 @@ def read_run_config(path: str | Path) -> dict[str, Any]:
 
 def load_torch_file(path: str | Path, what: str) -> Any:
     """``torch.load(path, weights_only=True)`` (tensors and plain containers only, nothing
-    unpickled), or a one-line ValueError naming the file and ``what`` it should be (issue 51 E12:
-    never torch's advice to load it with ``weights_only=False``)."""
+    unpickled), or a one-line ValueError naming the file and ``what`` it should be,
+    never torch's advice to load it with ``weights_only=False``."""
     import zipfile
 
     import torch

@@ -286,7 +286,7 @@ _REWARD_HP = ("action_rate_coef", "heading_coef", "yaw_rate_coef")
 def _check_same_policy(cfg: TrainConfig, plan: _Plan, observation: dict[str, Any]) -> None:
     """Refuse a bppo checkpoint trained with another policy interface (the builder's resolved
     ``observation`` section of its config.yaml: base controller, observation, history, action
-    filter, ``yaw_from``, ...) or another reward (:data:`_REWARD_HP`): issue 51 E7."""
+    filter, ``yaw_from``, ...) or another reward (:data:`_REWARD_HP`)."""
     from agents.training.batched_ppo import BatchedPPO
 
     cpath = _run_config_path(Path(cfg.resume_from))
