@@ -163,12 +163,16 @@ def test_cli_writes_every_result_file_with_its_provenance(tmp_path, capsys):
     prov = json.loads((out / "benchmark.json").read_text())
     assert prov["config"]["seeds"] == {"S1": [1000, 1001, 1002]}
     assert prov["versions"]["git_commit"] and prov["versions"]["numpy"] == np.__version__
-    first = (out / "leaderboard.csv").read_text().splitlines()[0]
-    assert first.startswith("# provenance: ") and json.loads(first[len("# provenance: "):]) == prov
+    # a plain CSV (no comment lines: pd.read_csv reads it as is), its SHA-256 recorded in benchmark.json
+    import hashlib
+
+    assert (out / "leaderboard.csv").read_text().splitlines()[0].startswith("tier,")
+    files = prov.pop("files")
+    assert files == {"leaderboard.csv": {"sha256": hashlib.sha256((out / "leaderboard.csv").read_bytes()).hexdigest()}}
     meta = pq.read_schema(out / "episodes.parquet").metadata
     assert json.loads(meta[b"auv_follow_provenance"]) == prov
     assert "git_commit" in (out / "leaderboard.md").read_text()
-    board = pd.read_csv(out / "leaderboard.csv", comment="#")
+    board = pd.read_csv(out / "leaderboard.csv")
     assert list(board["policy"]) == ["PID", "PROPOSED"] and (board["best_classical"] == "PROPOSED").all()
     episodes = pd.read_parquet(out / "episodes.parquet")
     assert len(episodes) == 6 and set(episodes["seed"]) == {1000, 1001, 1002}

@@ -68,18 +68,27 @@ def _copy(src: Path, dst: Path) -> Path:
     return dst
 
 
+def _unseal(folder: Path) -> None:
+    """Drop the SHA-256 of leaderboard.csv from benchmark.json: a hand-made CSV, as the reproducers
+    write it (a sealed folder refuses an edited CSV)."""
+    prov = json.loads((folder / "benchmark.json").read_text())
+    prov.pop("files", None)
+    (folder / "benchmark.json").write_text(json.dumps(prov))
+
+
 # --- item 1: escaping ---------------------------------------------------------------------------
 
 def test_report_escapes_every_value_from_the_folder(bench, tmp_path):
     """xss_kind_tier.sh: kind of a row and tier of an added row set to <img onerror>; a policy label
     that plotly would render as a link."""
     b = _copy(bench, tmp_path / "b")
+    _unseal(b)
     p = b / "leaderboard.csv"
     lines = p.read_text().splitlines()
-    head = lines[1].split(",")
-    row = lines[2].split(",")
+    head = lines[0].split(",")
+    row = lines[1].split(",")
     row[head.index("kind")] = f'"{XSS}"'
-    lines[2] = ",".join(row)
+    lines[1] = ",".join(row)
     row2 = list(row)
     row2[head.index("tier")] = "\"<img src=x onerror=alert('tier')>\""
     lines.append(",".join(row2))
@@ -139,6 +148,7 @@ def test_report_never_loads_a_model_file(bench, run_copy, tmp_path, monkeypatch)
     _evil_model(evil, marker)
     b = _copy(bench, tmp_path / "b")
     prov = json.loads((b / "benchmark.json").read_text())
+    prov.pop("files", None)  # (the CSV is rewritten below: no checksum)
     for p in prov["config"]["policies"]:
         if p["kind"] == "learned":
             p["runs"] = [str(evil)]
@@ -146,7 +156,7 @@ def test_report_never_loads_a_model_file(bench, run_copy, tmp_path, monkeypatch)
     (b / "benchmark.json").write_text(json.dumps(prov, indent=1))
     res = load_result(bench)
     BO._write_parquet(res.episodes, b / "episodes.parquet", prov)
-    BO._write_csv(res.leaderboard, b / "leaderboard.csv", prov)
+    BO._write_csv(res.leaderboard, b / "leaderboard.csv")
     BO._write_parquet(res.traces, b / "traces.parquet", prov)
     import agents.training.loading
 
@@ -616,13 +626,14 @@ def test_xss_report_runs_no_script_in_a_browser(bench, tmp_path):
     from selenium.webdriver.common.by import By
 
     b = _copy(bench, tmp_path / "b")
+    _unseal(b)
     p = b / "leaderboard.csv"
     lines = p.read_text().splitlines()
-    head = lines[1].split(",")
-    row = lines[2].split(",")
+    head = lines[0].split(",")
+    row = lines[1].split(",")
     row[head.index("kind")] = f'"{XSS}"'
     row[head.index("policy")] = '"<a href=""javascript:alert(2)"">click</a>"'
-    lines[2] = ",".join(row)
+    lines[1] = ",".join(row)
     row2 = list(row)
     row2[head.index("tier")] = "\"<img src=x onerror=alert('tier')>\""
     lines.append(",".join(row2))

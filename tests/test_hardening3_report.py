@@ -47,6 +47,9 @@ def _stripped(bench: Path, dst: Path) -> Path:
         t = pq.read_table(dst / f)
         pq.write_table(t.replace_schema_metadata({}), dst / f)
     pd.read_csv(dst / "leaderboard.csv", comment="#").to_csv(dst / "leaderboard.csv", index=False)
+    prov = json.loads((dst / "benchmark.json").read_text())
+    prov.pop("files", None)  # (and no checksum of the CSV)
+    (dst / "benchmark.json").write_text(json.dumps(prov))
     return dst
 
 

@@ -41,10 +41,24 @@ class BenchmarkResult:
     traces: pd.DataFrame | None = None  #: per-step replay episodes (see :func:`replay_traces`)
 
 
-def _write_csv(df: pd.DataFrame, path: Path, prov: Mapping[str, Any]) -> None:
-    with open(path, "w") as f:
-        f.write("# provenance: " + json.dumps(prov, default=str) + "\n")
-        df.to_csv(f, index=False)
+def _write_csv(df: pd.DataFrame, path: Path) -> None:
+    """A plain CSV (``pd.read_csv(path)`` reads it as written); its provenance is benchmark.json
+    beside it, which records the file's SHA-256 (:data:`PLAIN_FILES`)."""
+    df.to_csv(path, index=False)
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+#: files without room for a provenance stamp: benchmark.json's "files" section holds their SHA-256
+PLAIN_FILES: tuple[str, ...] = ("leaderboard.csv",)
 
 
 def _write_parquet(df: pd.DataFrame, path: Path, prov: Mapping[str, Any]) -> None:
@@ -146,11 +160,12 @@ def write_outputs(out: Path, episodes: pd.DataFrame, board: pd.DataFrame, prov: 
         staged = {k: stage / name for k, name in OUTPUT_FILES.items()}
         try:
             _write_parquet(episodes, staged["episodes"], prov)
-            _write_csv(board, staged["leaderboard_csv"], prov)
+            _write_csv(board, staged["leaderboard_csv"])
             staged["leaderboard_md"].write_text(leaderboard_markdown(board, prov) + "\n")
             plot_leaderboard(board, staged["leaderboard_png"], prov=prov)
             _write_parquet(traces, staged["traces"], prov)
-            staged["provenance"].write_text(json.dumps(prov, indent=1, default=str) + "\n")
+            files = {name: {"sha256": _sha256(stage / name)} for name in PLAIN_FILES}
+            staged["provenance"].write_text(json.dumps({**prov, "files": files}, indent=1, default=str) + "\n")
         except OSError as exc:
             raise OutputWriteError(f"cannot write into {out} ({exc.strerror or _first_line(exc)}): its previous "
                                    "files are kept") from exc
@@ -200,18 +215,25 @@ def load_result(out_dir: str | Path) -> BenchmarkResult:
         stamps[name] = json.loads(meta) if meta else None
         return table.to_pandas()
 
+    files = prov.pop("files", None) if isinstance(prov.get("files"), dict) else None
     episodes = parquet("episodes.parquet")
     try:
         with open(out / "leaderboard.csv") as f:
             first = f.readline()
-            stamps["leaderboard.csv"] = (json.loads(first[len("# provenance: "):])
-                                         if first.startswith("# provenance: ") else None)
-        board = pd.read_csv(out / "leaderboard.csv", comment="#")
+        stamped = first.startswith("# provenance: ")  # a folder written before the CSV was plain
+        stamps["leaderboard.csv"] = json.loads(first[len("# provenance: "):]) if stamped else None
+        board = pd.read_csv(out / "leaderboard.csv", skiprows=1 if stamped else 0)
     except (UnicodeDecodeError, ValueError, pd.errors.ParserError) as exc:
         raise ValueError(f"{out / 'leaderboard.csv'} is not a leaderboard CSV: {_first_line(exc)}") from None
     traces = parquet("traces.parquet") if (out / "traces.parquet").is_file() else None
     want = _prov_key(prov)
     mixed = sorted(name for name, st in stamps.items() if st is not None and _prov_key(st) != want)
+    for name, rec in (files or {}).items():
+        if name in PLAIN_FILES and isinstance(rec, dict) and (out / name).is_file() and \
+                rec.get("sha256") != _sha256(out / name):
+            raise ValueError(f"{out / name} is not the file this benchmark wrote (its SHA-256 differs from the one "
+                             f"in {out / 'benchmark.json'}): edited, or from different benchmark runs; run the "
+                             "benchmark again")
     if mixed:
         raise ValueError(f"{', '.join(str(out / m) for m in mixed)} and {out / 'benchmark.json'} are from different "
                          f"benchmark runs (their provenance differs): run the benchmark again")
