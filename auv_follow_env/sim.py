@@ -468,13 +468,24 @@ class _Episodes:
         for key in self.keys:
             if key in col:
                 out[key] = block[:, col[key]]
+            elif _is_number_tuple(self.fixed[key]):
+                # a fixed range (current_x, current_y): one (lo, hi) row per env, NaN elsewhere, so
+                # batched readers (TorchRL) see a float array of shape (N, 2) led by the env axis
+                arr = np.full((self.n, len(self.fixed[key])), np.nan)
+                arr[mask] = np.asarray(self.fixed[key], dtype=np.float64)
+                out[key] = arr
             else:
                 arr = np.empty(self.n, dtype=object)  # (None everywhere)
                 one = np.empty(1, dtype=object)
-                one[0] = self.fixed[key]  # (a tuple is one object per env, not a row to broadcast)
+                one[0] = self.fixed[key]
                 arr[mask] = one
                 out[key] = arr
         return out
+
+
+def _is_number_tuple(value: object) -> bool:
+    return (isinstance(value, tuple) and len(value) > 0
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value))
 
 
 def queue_capacity(config: EnvConfig) -> int:

@@ -335,6 +335,26 @@ def test_progress_lines_count_what_was_collected_and_have_no_escape_codes():
     assert "\r" not in stream.getvalue() and "\x1b" not in stream.getvalue()
 
 
+def test_a_time_budget_is_shown_beside_the_steps_and_named_when_it_ends_the_run(capsys):
+    """--max-minutes: the steps' ETA said 54 minutes for a run its 30 s budget stopped, and nothing said
+    the budget had ended it. By hand: 60.5 s into a 600 s budget, 539.5 s are left: 8m 59s."""
+    from agents.training.config import TrainConfig
+    from agents.training.runner import _note_budget
+
+    stream = io.StringIO()
+    p = _Progress(total=10**9, start=0, enabled=True, stream=stream, max_seconds=600.0)
+    p.t0 = time.perf_counter() - 60.5  # a tenth of the budget has passed: one line, whatever the steps
+    p.update(4096)
+    assert stream.getvalue().splitlines() == ["training: 0% (4,096/1,000,000,000 steps), time budget: 8m 59s left"]
+    result = {"num_timesteps": 4096, "wall_clock_s": 600.2, "interrupted": False}
+    _note_budget(TrainConfig(max_minutes=10.0), result, 10**9)
+    assert result["stopped_by"] == "max_minutes"
+    assert "stopped by the time budget (--max-minutes 10) after 4,096 of 1,000,000,000 steps" in capsys.readouterr().err
+    done = {"num_timesteps": 10**9, "wall_clock_s": 5.0, "interrupted": False}
+    _note_budget(TrainConfig(max_minutes=10.0), done, 10**9)  # the steps ran out first: nothing to say
+    assert "stopped_by" not in done and capsys.readouterr().err == ""
+
+
 # --- Ctrl-C -----------------------------------------------------------------------------------------
 
 def _default_stop_signals() -> None:

@@ -286,6 +286,33 @@ def test_torchrl_gym_wrapper_on_the_vector_env():
                 np.testing.assert_array_equal(td["observation"][i, 40:80].numpy(), refs[i][2][:40])
 
 
+@pytest.mark.parametrize("env_id", ["AUVFollow-Hard-v1", "AUVFollow-Leader-Hard-v1"])
+def test_torchrl_gym_wrapper_on_the_v1_vector_env(env_id):
+    """``GymWrapper(gym.make_vec("AUVFollow-Hard-v1", num_envs=4, autoreset_mode=SAME_STEP))`` failed:
+    the fixed current ranges were one tuple object per env, which TorchRL stacked as (2, 4). Now every
+    info array leads with the env axis: a range is a float (N, 2) array, NaN for envs not reset."""
+    pytest.importorskip("torchrl", reason="TorchRL is not installed (pip install -e '.[dev]')")
+    from torchrl.envs import GymWrapper
+    from torchrl.envs.utils import check_env_specs
+
+    n = 4
+    vec = gym.make_vec(env_id, num_envs=n, autoreset_mode=AutoresetMode.SAME_STEP)
+    _, info = vec.reset(seed=3)
+    single = gym.make(env_id).reset(seed=3)[1]["condition"]["current_x"]  # the single env's: a (lo, hi) tuple
+    cx = info["condition"]["current_x"]
+    assert cx.shape == (n, 2) and cx.dtype == np.float64
+    np.testing.assert_array_equal(cx, np.tile(np.asarray(single, dtype=float), (n, 1)))
+    _, info = vec.reset(seed=3, options={"reset_mask": np.array([True, False, True, False])})
+    cx = info["condition"]["current_x"]
+    assert np.isnan(cx[[1, 3]]).all() and np.isfinite(cx[[0, 2]]).all()
+    w = GymWrapper(vec)
+    assert w.batch_size == (n,)
+    check_env_specs(w)
+    td = w.rollout(50, policy=_zero_policy, break_when_any_done=False)
+    assert td.batch_size == (n, 50) and td["next", "observation"].shape == (n, 50, 20)
+    assert bool(td["next", "observation"].isfinite().all())
+
+
 def _zero_episodes(i: int, seed: int = 11) -> list[list[np.ndarray]]:
     """Env i of a vector env seeded ``seed``: its first three episodes' observations under
     zero actions, from the single env."""

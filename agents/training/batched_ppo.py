@@ -819,6 +819,7 @@ def train_bppo(cfg: Any, plan: Any, resolved: dict[str, Any], run: Path, progres
     ret_acc = np.zeros(n_envs)
     steps = start_steps
     t0 = time.perf_counter()
+    progress.t0 = t0  # the time budget's clock (--max-minutes) starts with the loop
     ckpt_freq, eval_freq = int(cfg.checkpoint_freq or 0), int(cfg.eval_freq or 0)
     next_ckpt = (steps // ckpt_freq + 1) * ckpt_freq if ckpt_freq else math.inf
     next_eval = (steps // eval_freq + 1) * eval_freq if eval_freq else math.inf

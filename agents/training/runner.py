@@ -90,6 +90,20 @@ def _check_resume(cfg: TrainConfig, residual: dict | None) -> None:
 
 
 
+def _budget_s(cfg: TrainConfig) -> float | None:
+    return 60.0 * float(cfg.max_minutes) if cfg.max_minutes is not None else None
+
+
+def _note_budget(cfg: TrainConfig, result: dict[str, Any], total: int) -> None:
+    """Say (on stderr and as ``result.stopped_by``) when --max-minutes, not --timesteps, ended the run."""
+    steps = int(result["num_timesteps"])
+    if cfg.max_minutes is None or result.get("interrupted") or result.get("failed") or steps >= total:
+        return
+    result["stopped_by"] = "max_minutes"
+    print(f"training stopped by the time budget (--max-minutes {cfg.max_minutes:g}) after {steps:,} of {total:,} "
+          f"steps ({result['wall_clock_s']:.0f} s); the model so far is saved", file=sys.stderr)
+
+
 def _check_eval_seeds(cfg: TrainConfig, n_envs: int, n_eval: int) -> None:
     """The learning-curve episodes must be held out: no evaluation seed may be a training env's
     seed (env i is seeded ``seed + i``; its later episodes continue its generator)."""
@@ -211,7 +225,8 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
                                           best_model_save_path=None, deterministic=True, verbose=0))
         if cfg.max_minutes is not None:
             callbacks.append(_wall_clock_callback(60.0 * cfg.max_minutes))
-        progress = _Progress(remaining, start_steps if cfg.resume_from is not None else 0, cfg.progress_bar)
+        progress = _Progress(remaining, start_steps if cfg.resume_from is not None else 0, cfg.progress_bar,
+                             max_seconds=_budget_s(cfg))
         callbacks.append(_progress_callback(progress))
         resolved = {"run": {**asdict(cfg), "total_timesteps": plan.total, "n_envs": n_envs, "run_dir": str(run)},
                     "hyperparams": {k: (v if isinstance(v, (int, float, str, bool, list, dict, type(None)))
@@ -226,6 +241,7 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
         raise
 
     t0 = time.perf_counter()
+    progress.t0 = t0  # the time budget's clock (--max-minutes) starts with learn
     interrupted = False
     try:
         with _StopOnSigint() as sigint:
@@ -261,6 +277,7 @@ def train(cfg: TrainConfig, return_model: bool = False) -> Path | tuple[Path, An
                           "wall_clock_s": round(elapsed, 2),
                           "steps_per_s": round((steps - start_steps) / max(elapsed, 1e-9), 1),
                           "interrupted": interrupted}
+    _note_budget(cfg, resolved["result"], plan.total)
     _write_yaml(run / "config.yaml", resolved)
     if interrupted:
         venv.close()
@@ -416,7 +433,7 @@ def _train_batched(cfg: TrainConfig, plan: _Plan, return_model: bool):
             raise ConfigError("out_dir", f"cannot write the run directory {run}: {_one_line(exc)}") from None
         raise
     cfg_run = TrainConfig(**{**asdict(cfg), "checkpoint_freq": checkpoint_freq, "eval_freq": eval_freq})
-    progress = _Progress(plan.total - start, start, cfg.progress_bar)
+    progress = _Progress(plan.total - start, start, cfg.progress_bar, max_seconds=_budget_s(cfg))
     try:
         with _StopOnSigint() as sigint:
             result, interrupted = train_bppo(cfg_run, plan, resolved, run, progress, sigint, _write_yaml)
@@ -425,6 +442,7 @@ def _train_batched(cfg: TrainConfig, plan: _Plan, return_model: bool):
         _record_failure(run, resolved, steps, start, f"a write failed: {_one_line(exc)}")
         raise TrainingFailed(run, steps, f"a write failed: {_one_line(exc)}") from exc
     resolved["result"] = result
+    _note_budget(cfg, result, plan.total)
     _write_yaml(run / "config.yaml", resolved)
     if result.get("failed"):  # config.yaml records result.failed; no model.zip (checkpoints before it are kept)
         raise TrainingFailed(run, result["num_timesteps"], result["failed"])

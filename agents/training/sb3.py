@@ -129,8 +129,11 @@ class _Progress:
     """Training progress over ``total`` new steps, never past 100 %: a tqdm bar on a terminal,
     otherwise a plain line per 10 % (no carriage returns or escape codes in logs)."""
 
-    def __init__(self, total: int, start: int, enabled: bool, stream: Any = None) -> None:
+    def __init__(self, total: int, start: int, enabled: bool, stream: Any = None,
+                 max_seconds: float | None = None) -> None:
         self.total, self.start, self.enabled = total, start, enabled
+        self.max_seconds = max_seconds  #: a wall-clock budget (--max-minutes): shown beside the steps' ETA
+        self.t0 = time.perf_counter()
         self.stream = stream if stream is not None else sys.stderr
         self.bar = None
         self.shown = 0
@@ -146,13 +149,34 @@ class _Progress:
         if not self.enabled:
             return
         done = max(num_timesteps - self.start, 0)  # an algorithm may collect past the budget (whole rollouts)
+        budget = self.budget_text()
         if self.bar is not None:
+            if budget:
+                self.bar.set_postfix_str(budget, refresh=False)
             self.bar.update(min(done, self.total) - min(self.shown, self.total))
-        elif self.next_line <= 1.0 + 1e-9 and done >= self.next_line * self.total - 1e-9:
+        elif (self.next_line <= 1.0 + 1e-9 and done >= self.next_line * self.total - 1e-9) or self._time_tick():
             pct = min(math.floor(100 * done / max(self.total, 1)), 100)
-            print(f"training: {pct}% ({done:,}/{self.total:,} steps)", file=self.stream, flush=True)
-            self.next_line = math.floor(10 * done / max(self.total, 1) + 1e-9) / 10 + 0.1
+            print(f"training: {pct}% ({done:,}/{self.total:,} steps)" + (f", {budget}" if budget else ""),
+                  file=self.stream, flush=True)
+            self.next_line = max(self.next_line, math.floor(10 * done / max(self.total, 1) + 1e-9) / 10 + 0.1)
         self.shown = done
+
+    def _time_tick(self) -> bool:
+        """True once per tenth of a --max-minutes budget (a log line then, whatever the steps)."""
+        if self.max_seconds is None:
+            return False
+        tenth = math.floor(10 * (time.perf_counter() - self.t0) / self.max_seconds)
+        if tenth > getattr(self, "_tenth", 0):
+            self._tenth = tenth
+            return True
+        return False
+
+    def budget_text(self) -> str:
+        """"time budget: 4m 10s left" while a --max-minutes budget runs (the bar's ETA counts steps)."""
+        if self.max_seconds is None:
+            return ""
+        left = max(self.max_seconds - (time.perf_counter() - self.t0), 0.0)
+        return f"time budget: {int(left // 60)}m {int(left % 60):02d}s left"
 
     def close(self) -> None:
         if self.bar is not None:
