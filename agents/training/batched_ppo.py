@@ -572,7 +572,7 @@ class BatchedAgent:
 
 
 def _load_model_file(path: Path) -> dict[str, Any]:
-    from agents.training.rundir import load_torch_file
+    from agents.training.torch_files import load_torch_file
 
     data = load_torch_file(path, "a bppo model file")
     if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT:

@@ -371,7 +371,7 @@ def load_estimator_agent(model_path: str | Path, config: dict[str, Any], name: s
         ValueError: the file is not a learned-estimator model (names it).
     """
 
-    from agents.training.rundir import load_torch_file
+    from agents.training.torch_files import load_torch_file
 
     w = load_torch_file(model_path, "a learned-estimator model")
     if not isinstance(w, dict) or w.get("format") != MODEL_FORMAT:
