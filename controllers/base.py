@@ -12,7 +12,23 @@ from numba import njit
 from auv_follow_env.layout import LAYOUTS, OBS_DIM, OBS_DIM_V1, OBS_INDEX_V1
 from auv_follow_env.params import TaskSpec
 
-__all__ = ["ScriptedPolicy", "ObservationHold", "as_batch", "as_mask", "FilteredDerivative", "wrap_to_pi", "sat"]
+__all__ = ["ScriptedPolicy", "ObservationHold", "check_real", "as_batch", "as_mask", "FilteredDerivative", "wrap_to_pi",
+           "sat"]
+
+
+def check_real(name: str, value: Any, lo: float, strict: bool) -> None:
+    """A ValueError naming ``name`` unless ``value`` is a finite real number (Python or numpy, not a
+    bool) above ``lo`` (``strict``) or at least ``lo``."""
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+    if ok:
+        try:
+            x = float(value)
+        except OverflowError:
+            ok = False
+        else:
+            ok = math.isfinite(x) and (x > lo if strict else x >= lo)
+    if not ok:
+        raise ValueError(f"{name}={value!r} is invalid: must be a finite number {'>' if strict else '>='} {lo:g}")
 
 
 def wrap_to_pi(a: np.ndarray) -> np.ndarray:

@@ -37,7 +37,7 @@ from numba import njit, prange
 from auv_follow_env.dynamics import recompiled
 from auv_follow_env.layout import LAYOUTS, OBS_DIM_V1, OBS_INDEX, OBS_INDEX_V1, decode
 from auv_follow_env.params import TaskSpec
-from controllers.base import FilteredDerivative, ScriptedPolicy, sat, wrap_to_pi
+from controllers.base import FilteredDerivative, ScriptedPolicy, check_real, sat, wrap_to_pi
 from controllers.disturbance import DisturbanceObserver
 from controllers.estimator import TargetEstimator
 
@@ -61,13 +61,17 @@ class Gains:
 
     def __post_init__(self) -> None:
         for n in ("K_p", "K_psi", "K_u", "K_v", "K_r"):
-            v = getattr(self, n)
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"{n}={v!r} is invalid: must be a finite number > 0")
-        if len(self.rho) != 3 or any(not (np.isfinite(r) and r >= 0) for r in self.rho):
-            raise ValueError(f"rho={self.rho!r} is invalid: must be three finite numbers >= 0")
-        if len(self.phi) != 3 or any(not (np.isfinite(p) and p > 0) for p in self.phi):
-            raise ValueError(f"phi={self.phi!r} is invalid: must be three finite numbers > 0")
+            check_real(n, getattr(self, n), 0.0, True)
+        check_real("derivative_tc", self.derivative_tc, 0.0, False)
+        for name, strict, what in (("rho", False, ">= 0"), ("phi", True, "> 0")):
+            v = getattr(self, name)
+            try:
+                if not isinstance(v, (tuple, list, np.ndarray)) or len(v) != 3:
+                    raise ValueError
+                for x in v:
+                    check_real(name, x, 0.0, strict)
+            except ValueError:
+                raise ValueError(f"{name}={v!r} is invalid: must be three finite numbers {what}") from None
 
 
 def _rot(psi: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

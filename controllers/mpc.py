@@ -62,18 +62,28 @@ from controllers.estimator import EstimatorConfig, TargetEstimator
 __all__ = ["MPCConfig", "MPCController", "CasadiMPCConfig", "CasadiMPCController", "thruster_coefficients"]
 
 
-def _check_number(obj: object, name: str, lo: float, strict: bool) -> None:
+#: the largest accepted value of a setting (far beyond use; a bound keeps a typo such as 1e308 from a NaN
+#: action or a huge allocation): weights and multipliers, horizons [s], counts
+_MAX_WEIGHT, _MAX_SECONDS, _MAX_COUNT = 1e6, 600.0, 10_000
+
+
+def _check_number(obj: object, name: str, lo: float, strict: bool, hi: float = _MAX_WEIGHT) -> None:
+    """A finite number in (lo or [lo, hi]; a numpy scalar is stored as a Python float."""
     v = getattr(obj, name)
-    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (
-        v > lo if strict else v >= lo)
+    ok = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_)) and \
+        math.isfinite(v) and (v > lo if strict else v >= lo) and v <= hi
     if not ok:
-        raise ValueError(f"{name}={v!r} is invalid: must be a finite number {'>' if strict else '>='} {lo}")
+        raise ValueError(f"{name}={v!r} is invalid: must be a finite number {'>' if strict else '>='} {lo} "
+                         f"and <= {hi:g}")
+    object.__setattr__(obj, name, float(v))
 
 
-def _check_int(obj: object, name: str, lo: int) -> None:
+def _check_int(obj: object, name: str, lo: int, hi: int = _MAX_COUNT) -> None:
+    """A whole number in [lo, hi]; a numpy integer is stored as a Python int."""
     v = getattr(obj, name)
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-        raise ValueError(f"{name}={v!r} is invalid: must be an integer >= {lo}")
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+        raise ValueError(f"{name}={v!r} is invalid: must be an integer in [{lo}, {hi}]")
+    object.__setattr__(obj, name, int(v))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -102,16 +112,18 @@ class MPCConfig:
     dob_time_constant: float = 0.5  #: its low-pass time constant [s]
 
     def __post_init__(self) -> None:
-        _check_number(self, "horizon_s", 0.0, True)
+        _check_number(self, "horizon_s", 0.0, True, _MAX_SECONDS)
         for n in ("w_pos", "w_psi", "w_vel", "w_r", "w_force", "w_rate"):
             _check_number(self, n, 0.0, False)
-        for n in ("w_terminal", "dob_time_constant", "admm_rho"):
+        for n in ("w_terminal", "admm_rho"):
             _check_number(self, n, 0.0, True)
-        _check_int(self, "intervals", 1)
+        _check_number(self, "dob_time_constant", 0.0, True, _MAX_SECONDS)
+        _check_int(self, "intervals", 1, 1000)
         _check_int(self, "admm_iterations", 1)
         for n in ("actuator_model", "disturbance_observer"):
-            if not isinstance(getattr(self, n), bool):
+            if not isinstance(getattr(self, n), (bool, np.bool_)):
                 raise ValueError(f"{n}={getattr(self, n)!r} is invalid: must be True or False")
+            object.__setattr__(self, n, bool(getattr(self, n)))
         if self.w_force + self.w_rate <= 0:
             raise ValueError(f"w_force={self.w_force!r} and w_rate={self.w_rate!r} are invalid: at least one "
                              f"must be > 0 (the QP needs a regularised command)")
@@ -665,24 +677,18 @@ class CasadiMPCConfig:
     dob_time_constant: float = 0.5  #: its low-pass time constant [s]
 
     def __post_init__(self) -> None:
-        def num(name: str, lo: float, strict: bool) -> None:
-            v = getattr(self, name)
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (
-                v > lo if strict else v >= lo)
-            if not ok:
-                raise ValueError(f"{name}={v!r} is invalid: must be a finite number {'>' if strict else '>='} {lo}")
-
         if self.qp_solver not in ("osqp", "qrqp"):
             raise ValueError(f"qp_solver={self.qp_solver!r} is invalid: must be 'osqp' or 'qrqp'")
-        num("horizon_s", 0.0, True)
+        _check_number(self, "horizon_s", 0.0, True, _MAX_SECONDS)
         for n in ("w_pos", "w_psi", "w_vel", "w_r", "w_force", "w_rate"):
-            num(n, 0.0, False)
-        num("w_terminal", 0.0, True)
-        num("dob_time_constant", 0.0, True)
-        for n, lo in (("intervals", 1), ("sqp_iterations", 1)):
-            v = getattr(self, n)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-                raise ValueError(f"{n}={v!r} is invalid: must be an integer >= {lo}")
+            _check_number(self, n, 0.0, False)
+        _check_number(self, "w_terminal", 0.0, True)
+        _check_number(self, "dob_time_constant", 0.0, True, _MAX_SECONDS)
+        _check_int(self, "intervals", 1, 1000)
+        _check_int(self, "sqp_iterations", 1, 100)
+        if not isinstance(self.disturbance_observer, (bool, np.bool_)):
+            raise ValueError(f"disturbance_observer={self.disturbance_observer!r} is invalid: must be True or False")
+        object.__setattr__(self, "disturbance_observer", bool(self.disturbance_observer))
         if self.w_force + self.w_rate <= 0:
             raise ValueError(f"w_force={self.w_force!r} and w_rate={self.w_rate!r} are invalid: at least one "
                              f"must be > 0 (the QP needs a regularised force)")

@@ -17,7 +17,7 @@ import numpy as np
 
 from auv_follow_env.layout import decode
 from auv_follow_env.params import TaskSpec
-from controllers.base import FilteredDerivative, ScriptedPolicy, wrap_to_pi
+from controllers.base import FilteredDerivative, ScriptedPolicy, check_real, wrap_to_pi
 from controllers.hierarchical import no_packet_mask, predict_target, reference_point, zero_where
 
 __all__ = ["PIDGains", "PIDController"]
@@ -35,9 +35,7 @@ class PIDGains:
 
     def __post_init__(self) -> None:
         for n in ("K_P", "K_I", "K_D", "K_P_psi", "K_I_psi", "K_D_psi", "derivative_tc"):
-            v = getattr(self, n)
-            if not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"{n}={v!r} is invalid: must be a finite number >= 0")
+            check_real(n, getattr(self, n), 0.0, False)
 
 
 class PIDController(ScriptedPolicy):

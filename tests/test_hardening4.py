@@ -298,3 +298,30 @@ def test_a_stop_signal_to_a_benchmark_keeps_the_previous_set(sig, code, tmp_path
     assert f"auv-follow benchmark: interrupted by {name} (nothing half-written was kept)" in err
     assert "Traceback" not in err
     assert {f.name: f.read_bytes() for f in out.iterdir()} == before
+
+
+# --- item 2: every settings class given numpy scalars and extreme values -----------------------------
+
+def _settings_cases():
+    from controllers import Gains, PIDGains
+    from controllers.mpc import CasadiMPCConfig, MPCConfig
+
+    return [(Gains, "K_p"), (Gains, "derivative_tc"), (PIDGains, "K_P"), (PIDGains, "derivative_tc"),
+            (MPCConfig, "horizon_s"), (MPCConfig, "w_pos"), (MPCConfig, "intervals"), (MPCConfig, "admm_iterations"),
+            (CasadiMPCConfig, "horizon_s"), (CasadiMPCConfig, "sqp_iterations")]
+
+
+@pytest.mark.parametrize(("cls", "field"), _settings_cases(), ids=lambda x: getattr(x, "__name__", x))
+def test_controller_settings_take_numpy_scalars_and_refuse_extremes_by_name(cls, field):
+    """MPCConfig refused np.float32(3.0) and accepted horizon_s=1e308 and intervals=10**30 (a huge QP);
+    Gains let numpy raise its own TypeError for a string or 10**30."""
+    default = getattr(cls(), field)
+    np_value = np.int64(default) if isinstance(default, int) else np.float32(default)
+    c = cls(**{field: np_value})
+    assert getattr(c, field) == default
+    bad = [-1, float("nan"), float("inf"), "x", True]
+    if cls.__name__ in ("MPCConfig", "CasadiMPCConfig"):
+        bad += [10**30, 1e308]  # bounded: horizon <= 600 s, <= 1000 intervals, weights <= 1e6
+    for v in bad:
+        with pytest.raises(ValueError, match=rf"{field}=.* is invalid"):
+            cls(**{field: v})
