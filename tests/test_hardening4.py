@@ -325,3 +325,22 @@ def test_controller_settings_take_numpy_scalars_and_refuse_extremes_by_name(cls,
     for v in bad:
         with pytest.raises(ValueError, match=rf"{field}=.* is invalid"):
             cls(**{field: v})
+
+
+def test_training_and_sweep_settings_take_numpy_scalars_and_refuse_extremes_by_name():
+    """TrainConfig refused max_minutes=np.float32(1.0) and accepted total_timesteps=10**30; SweepConfig
+    refused np.int64 counts and accepted cpus_per_trial=inf and max_failures=-1."""
+    from agents.benchmark.sweep import SweepConfig
+    from agents.training.config import TrainConfig
+
+    TrainConfig(max_minutes=np.float32(1.0), total_timesteps=np.int64(4096)).validate()
+    for field, v in [("total_timesteps", 10**30), ("max_minutes", 1e308), ("max_minutes", np.bool_(True))]:
+        with pytest.raises(ValueError, match=rf"{field}=.* is invalid"):
+            TrainConfig(**{field: v}).validate()
+    cfg = SweepConfig(timesteps=np.int64(4096), chunks=np.int64(2), num_samples=np.int64(1),
+                      cpus_per_trial=np.float32(1.0))
+    cfg.validate()
+    assert type(cfg.timesteps) is int and type(cfg.cpus_per_trial) is float  # (written to sweep.yaml as such)
+    for field, v in [("cpus_per_trial", float("inf")), ("max_failures", -1), ("timesteps", 10**30)]:
+        with pytest.raises(ValueError, match=rf"{field}=.* is invalid"):
+            SweepConfig(**{field: v}).validate()

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import signal
@@ -118,14 +119,19 @@ class SweepConfig:
             if not (isinstance(spec, dict) and len(spec) == 1 and next(iter(spec)) in _SAMPLERS):
                 raise ValueError(f"search[{k!r}]={spec!r} is invalid: must be one of {{sampler: args}} with sampler "
                                  f"in {list(_SAMPLERS)}")
-        for name in ("timesteps", "chunks", "n_envs", "num_samples"):
+        for name, lo, hi in (("timesteps", 1, 10**12), ("chunks", 1, 10_000), ("n_envs", 1, 4096),
+                             ("num_samples", 1, 100_000), ("max_failures", 0, 1000)):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name}={v!r} is invalid: must be an integer >= 1")
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+                raise ValueError(f"{name}={v!r} is invalid: must be an integer in [{lo}, {hi}]")
+            setattr(self, name, int(v))
         if self.timesteps < self.chunks:
             raise ValueError(f"timesteps={self.timesteps} is invalid: must be >= chunks={self.chunks}")
-        if not self.cpus_per_trial > 0:
-            raise ValueError(f"cpus_per_trial={self.cpus_per_trial!r} is invalid: must be > 0")
+        c = self.cpus_per_trial
+        if isinstance(c, (bool, np.bool_)) or not isinstance(c, (int, float, np.integer, np.floating)) or not (
+                math.isfinite(c) and 0 < c <= 1024):
+            raise ValueError(f"cpus_per_trial={c!r} is invalid: must be a number in (0, 1024]")
+        self.cpus_per_trial = float(c)
 
     @classmethod
     def from_file(cls, path: str | Path, **overrides: Any) -> SweepConfig:

@@ -62,6 +62,11 @@ class ConfigError(ValueError):
         self.field = field
 
 
+#: the largest step budget and time budget accepted (far beyond any run; a typo is refused, not run forever)
+MAX_TIMESTEPS = 10**12
+MAX_MINUTES = 525_600.0
+
+
 class TrainingInterrupted(KeyboardInterrupt):
     """Ctrl-C during :func:`train`, raised after the model, the statistics and ``config.yaml``
     (``interrupted: true``) were saved in ``run``."""
@@ -493,7 +498,7 @@ class TrainConfig:
             raise ConfigError("env_kwargs", f"env_kwargs={self.env_kwargs!r} is invalid: must be a dict")
         if not isinstance(self.hyperparams, dict):
             raise ConfigError("hyperparams", f"hyperparams={self.hyperparams!r} is invalid: must be a dict")
-        for name, lo, hi in (("total_timesteps", 1, math.inf), ("n_envs", 1, MAX_N_ENVS),
+        for name, lo, hi in (("total_timesteps", 1, MAX_TIMESTEPS), ("n_envs", 1, MAX_N_ENVS),
                              ("checkpoint_freq", 0, math.inf), ("eval_freq", 0, math.inf),
                              ("history_len", 0, math.inf),
                              ("eval_episodes", 1, 10_000), ("seed", 0, 2**32 - 1),
@@ -504,10 +509,11 @@ class TrainConfig:
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 allowed = f"an integer >= {lo}" if hi == math.inf else f"an integer in [{lo}, {hi}]"
                 raise ConfigError(name, f"{name}={v!r} is invalid: must be {allowed}")
-        if self.max_minutes is not None and (isinstance(self.max_minutes, bool) or not isinstance(
-                self.max_minutes, (int, float)) or not (math.isfinite(self.max_minutes) and self.max_minutes > 0)):
-            raise ConfigError("max_minutes", f"max_minutes={self.max_minutes!r} is invalid: must be a finite "
-                                             "number > 0")
+        mm = self.max_minutes
+        if mm is not None and (isinstance(mm, (bool, np.bool_)) or not isinstance(
+                mm, (int, float, np.integer, np.floating)) or not (math.isfinite(mm) and 0 < mm <= MAX_MINUTES)):
+            raise ConfigError("max_minutes", f"max_minutes={mm!r} is invalid: must be a finite number in "
+                                             f"(0, {MAX_MINUTES:g}] (a year of minutes)")
         if self.run_name is not None:
             n = self.run_name
             if (not isinstance(n, str) or n in ("", ".", "..") or "/" in n or "\\" in n or "\0" in n
