@@ -40,6 +40,7 @@ from numba import njit, prange
 from auv_follow_env.dynamics import recompiled
 from auv_follow_env.layout import OBS_INDEX
 from auv_follow_env.params import VehicleParams
+from controllers.base import check_real
 
 __all__ = ["DisturbanceObserver"]
 
@@ -60,17 +61,16 @@ class DisturbanceObserver:
                  time_constant: float = 0.5, thruster_tc_s: float = 0.0, thruster_rate: float = math.inf) -> None:
         if not isinstance(nominal, VehicleParams):
             raise ValueError(f"nominal={nominal!r} is invalid: must be an auv_follow_env VehicleParams")
-        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
-            raise ValueError(f"dt={dt!r} is invalid: must be a finite number > 0 [s]")
-        if not (isinstance(time_constant, (int, float)) and math.isfinite(time_constant) and time_constant > 0):
-            raise ValueError(f"time_constant={time_constant!r} is invalid: must be a finite number > 0 [s]")
+        check_real("dt", dt, 0.0, True)
+        check_real("time_constant", time_constant, 0.0, True)
         lim = np.asarray(force_limits, dtype=np.float64)
         if lim.shape != (3,) or not np.all(np.isfinite(lim) & (lim > 0)):
             raise ValueError(f"force_limits={force_limits!r} is invalid: must be three finite numbers > 0")
-        if not (isinstance(thruster_tc_s, (int, float)) and math.isfinite(thruster_tc_s) and thruster_tc_s >= 0):
-            raise ValueError(f"thruster_tc_s={thruster_tc_s!r} is invalid: must be a finite number >= 0 [s]")
-        if not (isinstance(thruster_rate, (int, float)) and not math.isnan(thruster_rate) and thruster_rate > 0):
+        check_real("thruster_tc_s", thruster_tc_s, 0.0, False)
+        if not (isinstance(thruster_rate, (int, float, np.integer, np.floating)) and not isinstance(thruster_rate, bool)
+                and not math.isnan(thruster_rate) and thruster_rate > 0):
             raise ValueError(f"thruster_rate={thruster_rate!r} is invalid: must be a number > 0 (inf: no limit) [1/s]")
+        dt, time_constant, thruster_tc_s = float(dt), float(time_constant), float(thruster_tc_s)
         self.alpha = 1.0 - math.exp(-dt / thruster_tc_s) if thruster_tc_s > 0 else 1.0
         self.rate_step = float(thruster_rate) * dt * lim  # max change of the applied force per step
         self.nominal = nominal

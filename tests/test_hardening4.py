@@ -344,3 +344,16 @@ def test_training_and_sweep_settings_take_numpy_scalars_and_refuse_extremes_by_n
     for field, v in [("cpus_per_trial", float("inf")), ("max_failures", -1), ("timesteps", 10**30)]:
         with pytest.raises(ValueError, match=rf"{field}=.* is invalid"):
             SweepConfig(**{field: v}).validate()
+
+
+def test_the_disturbance_observer_takes_numpy_scalars():
+    """It refused time_constant=np.float32(0.5) as "not a finite number"."""
+    from controllers import DisturbanceObserver
+
+    spec = gym.make("AUVFollow-Hard-v1").unwrapped.task_spec
+    obs = DisturbanceObserver(spec.nominal, np.float64(spec.dt), spec.force_limits, np.float32(0.5))
+    assert obs.time_constant == 0.5
+    for name, kw in [("time_constant", {"time_constant": float("nan")}), ("thruster_tc_s", {"thruster_tc_s": -1.0}),
+                     ("time_constant", {"time_constant": "x"})]:
+        with pytest.raises(ValueError, match=rf"{name}=.* is invalid"):
+            DisturbanceObserver(spec.nominal, spec.dt, spec.force_limits, **kw)
