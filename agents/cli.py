@@ -237,6 +237,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--name", default="compare", help="file name stem of the outputs")
     c.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     _add_benchmark_commands(sub)
+    from agents.data_commands import add_data_commands
+
+    add_data_commands(sub, _Formatter, ENV_CHOICES, _seeds)
     return p
 
 

@@ -10,6 +10,7 @@ import numpy as np
 from gymnasium import spaces
 
 from auv_follow_env import dynamics as dyn
+from auv_follow_env.link_trace import TraceLink, read_link_trace
 from auv_follow_env.metrics import tracking_metrics
 from auv_follow_env.params import TaskSpec
 from auv_follow_env.sim import BatchSim, check_sincos
@@ -195,6 +196,9 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
     Info: at reset ``condition`` (the drawn settings of this episode, a dict); at the end
     ``link_stats`` (packets sent, lost, arrived, discarded, overflow since t = 0). Every v1
     field is a ``gym.make`` keyword: a number fixes it, a ``(min, max)`` pair draws it per reset.
+    ``link_trace`` (a ``.csv``/``.parquet`` file or a DataFrame; :mod:`auv_follow_env.link_trace`, docs/data.md)
+    replays a recorded link in place of the link model: the follower hears the trace's packets,
+    while the plant, target and current run as without it (``info["link_trace"]`` at reset names it).
     v0's constant delay is the setting ``update_period_s = dt``, ``latency_s = tau``,
     ``warmup_s = tau``, no loss, no noise, no processes (``AUVFollow-v1`` with those keywords
     reproduces ``AUVFollow-v0``'s plant trajectory).
@@ -232,8 +236,12 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def __init__(self, scenario: str = "S4", disturbance: str | None = None,
                  render_mode: str | None = None, *, version: str = "v0", tier: str | None = None,
-                 sincos: str | None = None, fast_math: bool | None = None, **overrides: Any) -> None:
+                 sincos: str | None = None, fast_math: bool | None = None, link_trace: Any = None,
+                 **overrides: Any) -> None:
         sincos = check_sincos(sincos, fast_math)
+        if link_trace is not None and version != "v1":
+            raise ValueError(f"link_trace={link_trace!r} is for the v1 ids (AUVFollow-*-v1): the v0 task has a "
+                             f"constant delay and no link to replay")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r} is unknown: valid modes are "
                              f"{self.metadata['render_modes']} or None")
@@ -260,6 +268,10 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         self._trails: deque | None = None
         self._fixes: deque | None = None  # v1: (x, y, measured at, arrived at) of the fixes received
         self._renderer = None
+        #: the replay of ``link_trace`` (v1), else None: what the follower hears comes from the trace
+        self._trace_link: TraceLink | None = None
+        if link_trace is not None:
+            self._trace_link = TraceLink(read_link_trace(link_trace), self._dt, self._n_steps)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         if seed is not None:
@@ -271,6 +283,10 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         super().reset(seed=seed)
         self._sim.reset(_IDX0, [self.np_random])
         self._started = True
+        obs = self._sim.obs[0].copy()
+        if self._trace_link is not None:
+            self._trace_link.reset(self._sim, self._sim.truth[0, dyn.T_TARGET].copy())
+            self._trace_link.observe(obs, self._sim, 0, self.fast_math)
         if self.render_mode is not None:
             self._trails = deque(maxlen=int(20.0 / self.config.dt))
             self._fixes = deque()
@@ -280,9 +296,11 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
                 "true_reference": truth[9:12], "follower_pose": truth[0:3]}
         if self._sim.v1:
             info["condition"] = self._sim.condition(0)
+        if self._trace_link is not None:
+            info["link_trace"] = self._trace_link.trace.source
         if self.render_mode == "human":
             self.render()
-        return self._sim.obs[0].copy(), info
+        return obs, info
 
     def step(self, action: Any):
         if not self._started:
@@ -296,16 +314,22 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
             raise ValueError(f"action={action.tolist()} contains NaN or inf: the env was not changed")
         info = {"tracking_error": err, "time": k * self._dt, "true_target": self._true_target.copy(),
                 "true_reference": self._true_reference.copy(), "follower_pose": self._follower_pose.copy()}
+        obs = self._obs0.copy()
+        trace = self._trace_link
+        if trace is not None:
+            trace.step(k, info["true_target"])
+            if np.isfinite(self._sim.state[0]).all():  # (else the kernel zeroed the observation)
+                trace.observe(obs, self._sim, k, self.fast_math)
         if terminated or k == self._n_steps:
             sim = self._sim
             info["episode_metrics"] = tracking_metrics(*sim.errors(0), self.config.steady_start_s)
             if sim.v1:
-                info["link_stats"] = sim.link_stats(0)
+                info["link_stats"] = dict(trace.stats) if trace is not None else sim.link_stats(0)
         if self.render_mode is not None:
             self._record_trail()
             if self.render_mode == "human":
                 self.render()
-        return self._obs0.copy(), reward, terminated, k >= self._n_steps and not terminated, info
+        return obs, reward, terminated, k >= self._n_steps and not terminated, info
 
     # --- rendering ------------------------------------------------------------------------
     def _record_trail(self) -> None:
@@ -314,13 +338,20 @@ class AUVFollowEnv(gym.Env[np.ndarray, np.ndarray]):
         tr = self._sim.truth[0]
         self._trails.append((tr[0], tr[1], tr[2], tr[3], tr[4], tr[5], tr[9], tr[10]))
         if self._sim.v1:
-            p = self._sim.proc[0]
             dt = self.config.dt
-            if p[dyn.R_HAS] != 0.0 and (not self._fixes or self._fixes[-1][3] != p[dyn.R_HARR] * dt):
-                self._fixes.append((float(p[dyn.R_HX]), float(p[dyn.R_HX + 1]), float(p[dyn.R_HMEAS]) * dt,
-                                    float(p[dyn.R_HARR]) * dt))
+            has, x, meas, arr = self._held_packet()
+            if has and (not self._fixes or self._fixes[-1][3] != arr * dt):
+                self._fixes.append((float(x[0]), float(x[1]), float(meas) * dt, float(arr) * dt))
             while self._fixes and self._fixes[0][3] < (self._sim.k[0] - self._trails.maxlen) * dt:
                 self._fixes.popleft()  # (only the fixes of the trails' window)
+
+    def _held_packet(self) -> tuple[bool, np.ndarray, int, int]:
+        """The packet the follower holds: (any, measured x y psi u v r, measured at, arrived at [steps])."""
+        t = self._trace_link
+        if t is not None:
+            return t.has, t.x, t.meas, t.arr
+        p = self._sim.proc[0]
+        return p[dyn.R_HAS] != 0.0, p[dyn.R_HX:dyn.R_HX + 6], int(p[dyn.R_HMEAS]), int(p[dyn.R_HARR])
 
     def render(self):
         if self.render_mode is None:

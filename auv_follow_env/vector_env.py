@@ -234,6 +234,9 @@ class AUVFollowVectorEnv(VectorEnv):
         if render_mode is not None:
             raise ValueError(f"render_mode={render_mode!r} is not supported by the vector env: pass "
                              f"None (render a single AUVFollowEnv instead)")
+        if "link_trace" in overrides:
+            raise ValueError("link_trace is not a vector-env keyword: a trace replays one episode's link; use "
+                             "gym.make(id, link_trace=FILE) (the single env)")
         self.config = make_env_config(scenario, disturbance, version=version, tier=tier, **overrides)
         n_steps = self.config.n_steps
         if max_episode_steps is not None and max_episode_steps != n_steps:

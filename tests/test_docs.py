@@ -168,7 +168,7 @@ def _blocks(page: str) -> list[str]:
     return re.findall(r"^```python\n(.*?)^```", (ROOT / "docs" / page).read_text(), flags=re.S | re.M)
 
 
-PAGE_BLOCKS = [(page, i) for page in ("interop.md", "getting_started.md", "training.md")
+PAGE_BLOCKS = [(page, i) for page in ("interop.md", "getting_started.md", "training.md", "data.md")
                for i in range(len(_blocks(page)))]
 
 
