@@ -13,8 +13,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _run(*args: str, timeout: float = 120) -> str:
-    env = {**os.environ, "MPLBACKEND": "Agg", "SDL_VIDEODRIVER": "dummy"}
+def _run(*args: str, timeout: float = 120, **extra_env: str) -> str:
+    env = {**os.environ, "MPLBACKEND": "Agg", "SDL_VIDEODRIVER": "dummy", **extra_env}
     out = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout, env=env)
     assert out.returncode == 0, f"{' '.join(args)} failed:\n{out.stderr[-3000:]}"
     return out.stdout
@@ -23,7 +23,8 @@ def _run(*args: str, timeout: float = 120) -> str:
 def test_every_example_is_documented_and_tested():
     page = (ROOT / "docs" / "examples.md").read_text()
     scripts = sorted(p.name for p in (ROOT / "examples").glob("*.py"))
-    assert scripts == ["evaluate_controller.py", "record_video.py", "train_agent.py", "user_controller.py"]
+    assert scripts == ["bc_from_dataset.py", "evaluate_controller.py", "record_video.py", "train_agent.py",
+                       "user_controller.py"]
     for name in scripts:
         assert f"examples/{name}" in page, name
 
@@ -65,3 +66,16 @@ def test_record_video(tmp_path):
     videos = list(out.glob("*.mp4"))
     assert [v.name for v in videos] == ["rl-video-episode-0.mp4"] and videos[0].stat().st_size > 1000
     assert "rl-video-episode-0.mp4" in text
+
+
+def test_behaviour_cloning_from_a_dataset(tmp_path):
+    pytest.importorskip("minari", reason="Minari is not installed (pip install -e '.[data]')")
+    text = _run("examples/bc_from_dataset.py", "--episodes", "3", "--epochs", "1", "--test-seeds", "2",
+                timeout=240, MINARI_DATASETS_PATH=str(tmp_path))
+    assert "3600 (observation, action) pairs from 3 episodes" in text  # 3 episodes of 1200 steps
+    table = [line for line in text.splitlines() if line.startswith(("BC", "PROP", "PID"))]
+    rows = {line[:28].strip(): line[28:].split() for line in table}
+    assert set(rows) == {"BC clone", "PROPOSED_KF_DOB (expert)", "PID"}
+    # Minari's normalised score is 1 at the expert (the Easy tier's best classical) and 0 at PID, by construction
+    assert float(rows["PROPOSED_KF_DOB (expert)"][1]) == pytest.approx(1.0, abs=1e-3)
+    assert float(rows["PID"][1]) == pytest.approx(0.0, abs=1e-3)
