@@ -436,6 +436,12 @@ def _add_benchmark_commands(sub: Any) -> None:
     b.add_argument("--floors", action="store_true",
                    help="add each v1 tier's control and information floors (a Leader tier's control floor) as "
                         "reference rows and a 'gap closed' column (agents/benchmark/floors.py; a minute per tier)")
+    b.add_argument("--address", default=None,
+                   help="run the episodes on the Ray cluster at this address (host:port of its head, or 'local' "
+                        "for a new Ray instance on this machine) as (tier, policy, seed chunk) cells; every node "
+                        "needs this checkout installed (default: in this process)")
+    b.add_argument("--chunk", type=_positive_int, default=None,
+                   help="seeds per cell with --address (default: 25, four cells per tier and policy)")
     b.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     b.set_defaults(handler=_cmd_benchmark)
 
@@ -493,10 +499,17 @@ def _cmd_benchmark(args: argparse.Namespace) -> None:
     _check_writable(Path(args.out), "--out", want_dir=True)
     if args.cache_dir is not None:
         _check_writable(Path(args.cache_dir), "--cache", want_dir=True)
-    res = benchmark(args.policies, args.tiers, seeds=args.seeds, out_dir=args.out, n_resamples=args.resamples,
-                    bootstrap_seed=args.bootstrap_seed, batched=args.batched, progress=args.progress,
-                    cache_dir=args.cache_dir, floors=args.floors,
-                    command="auv-follow " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["benchmark"] else None)
+    if args.chunk is not None and args.address is None:
+        raise _Refused("--chunk", "cells are for --address: give the cluster's address too")
+    from agents.benchmark.cluster import ClusterUnavailable
+
+    try:
+        res = benchmark(args.policies, args.tiers, seeds=args.seeds, out_dir=args.out, n_resamples=args.resamples,
+                        bootstrap_seed=args.bootstrap_seed, batched=args.batched, progress=args.progress,
+                        cache_dir=args.cache_dir, floors=args.floors, address=args.address, chunk=args.chunk,
+                        command="auv-follow " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["benchmark"] else None)
+    except ClusterUnavailable as exc:
+        raise _Refused("--address", str(exc)) from None
     print(benchmark_summary(res.leaderboard, res.files))
 
 

@@ -59,7 +59,8 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
               seeds: Mapping[str, Sequence[int]] | Sequence[int] | None = None, out_dir: str | Path | None = None,
               n_resamples: int = DEFAULT_RESAMPLES, bootstrap_seed: int = DEFAULT_BOOTSTRAP_SEED,
               batched: bool = True, progress: bool = True, command: str | None = None,
-              cache_dir: str | Path | None = None, floors: bool = False) -> BenchmarkResult:
+              cache_dir: str | Path | None = None, floors: bool = False, address: str | None = None,
+              chunk: int | None = None) -> BenchmarkResult:
     """Score ``policies`` on ``tiers`` and build the leaderboard.
 
     Args:
@@ -79,6 +80,11 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
         floors: add each v1 and Leader tier's control and information floors as reference rows
             (``kind="reference"``, :func:`agents.benchmark.floors.floor_episodes`) and the leaderboard's
             ``gap_closed`` column.
+        address: run the episodes on the Ray cluster there ("local": a new Ray instance on this
+            machine) as (tier, policy, seed chunk) cells and one floors cell per tier
+            (:mod:`agents.benchmark.cluster`); the tables are those of the local run. Default: in
+            this process.
+        chunk: seeds per cell with ``address`` (default :data:`agents.benchmark.cluster.DEFAULT_CHUNK`).
 
     Raises:
         ValueError: unknown tier or policy, a reserved label, repeated seeds or seeds outside
@@ -124,13 +130,24 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
             seed_map[t] = check_seed_list(seeds[t], f"seeds[{t!r}]") if t in seeds else tier_test_seeds(t)
         else:
             seed_map[t] = check_seed_list(seeds)
-    frames = [evaluate_tier(specs, t, seed_map[t], batched=batched, progress=progress, cache_dir=cache_dir)
-              for t in tqdm(tiers, desc="tiers", disable=not progress)]
-    if floors:  # reference rows, not competitors (agents/benchmark/floors.py)
-        from agents.benchmark.floors import floor_episodes
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or
+                              not 1 <= chunk <= 100_000):
+        raise ValueError(f"chunk={chunk!r} is invalid: seeds per cell, an integer in [1, 100000]")
+    floor_tiers = [t for t in tiers if t in V1_TIERS + LEADER_TIERS] if floors else []
+    if address is not None:
+        from agents.benchmark.cluster import DEFAULT_CHUNK, run_on_ray
 
-        frames += [floor_episodes(t, seed_map[t], progress=progress, cache_dir=cache_dir)
-                   for t in tiers if t in V1_TIERS + LEADER_TIERS]
+        frames, floor_frames = run_on_ray(specs, seed_map, address, chunk=chunk or DEFAULT_CHUNK, batched=batched,
+                                          floor_tiers=floor_tiers, cache_dir=cache_dir, progress=progress)
+        _check_cluster_tiers(frames, specs, tiers)
+        frames += floor_frames
+    else:
+        frames = [evaluate_tier(specs, t, seed_map[t], batched=batched, progress=progress, cache_dir=cache_dir)
+                  for t in tqdm(tiers, desc="tiers", disable=not progress)]
+        if floors:  # reference rows, not competitors (agents/benchmark/floors.py)
+            from agents.benchmark.floors import floor_episodes
+
+            frames += [floor_episodes(t, seed_map[t], progress=progress, cache_dir=cache_dir) for t in floor_tiers]
     episodes = pd.concat(frames, ignore_index=True)
     board = leaderboard(episodes, n_resamples=n_resamples, seed=bootstrap_seed, progress=progress,
                         bases=residual_bases(specs),
@@ -139,10 +156,34 @@ def benchmark(policies: Iterable[str | Path | PolicySpec] | None = None, tiers: 
               "policies": [dataclasses.asdict(s) for s in specs], "metrics": list(LEADERBOARD_METRICS),
               "n_resamples": n_resamples, "bootstrap_seed": bootstrap_seed, "confidence": 0.95,
               "batched": batched, "published_seeds": seeds is None, "floors": floors,
-              "cache_dir": None if cache_dir is None else str(cache_dir)}
+              "cache_dir": None if cache_dir is None else str(cache_dir), "address": address,
+              "chunk": (chunk or _default_chunk()) if address is not None else None}
     prov = provenance(config)
     result = BenchmarkResult(episodes, board, prov)
     if out_dir is not None:
         traces = replay_traces(specs, seed_map, progress=progress)
         result.files = write_outputs(Path(out_dir), episodes, board, prov, traces)
     return result
+
+
+def _default_chunk() -> int:
+    from agents.benchmark.cluster import DEFAULT_CHUNK
+
+    return DEFAULT_CHUNK
+
+
+def _check_cluster_tiers(frames: list[pd.DataFrame], specs: Sequence[PolicySpec], tiers: Sequence[str]) -> None:
+    """As the local run: a tier no policy could run on is an error, a policy left out of a tier a warning."""
+    import warnings
+
+    got = {f["tier"].iloc[0]: set(f["policy"]) for f in frames}
+    for t in tiers:
+        wanted = [s.label for s in specs if not s.tiers or t in s.tiers]
+        if not wanted:
+            continue
+        if t not in got:
+            raise ValueError(f"tier={t!r}: none of the policies can run on {resolve_tier(t)[1]}")
+        for label in wanted:
+            if label not in got[t]:
+                warnings.warn(f"{t}: {label!r} cannot run on {resolve_tier(t)[1]} and is left out of this tier",
+                              stacklevel=3)
