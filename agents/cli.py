@@ -445,6 +445,16 @@ def _add_benchmark_commands(sub: Any) -> None:
     b.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     b.set_defaults(handler=_cmd_benchmark)
 
+    lb = sub.add_parser("leaderboard", help="recompute a benchmark folder's leaderboard from its stored episodes",
+                        formatter_class=_Formatter,
+                        description="Recompute the leaderboard (leaderboard.csv/.md/.png, benchmark.json) of a folder "
+                                    "written by `auv-follow benchmark` from its episodes.parquet, with the folder's "
+                                    "bootstrap settings: no episode runs. For a new statistic on the stored episodes; "
+                                    "the provenance keeps the episodes' own and records the rebuild.")
+    lb.add_argument("--bench", required=True, help="directory written by `auv-follow benchmark`")
+    lb.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+    lb.set_defaults(handler=_cmd_leaderboard)
+
     r = sub.add_parser("report", help="one self-contained HTML page from a benchmark directory",
                        formatter_class=_Formatter,
                        description="One self-contained HTML page (plotly inline) from a benchmark directory, built "
@@ -510,6 +520,19 @@ def _cmd_benchmark(args: argparse.Namespace) -> None:
                         command="auv-follow " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["benchmark"] else None)
     except ClusterUnavailable as exc:
         raise _Refused("--address", str(exc)) from None
+    print(benchmark_summary(res.leaderboard, res.files))
+
+
+def _cmd_leaderboard(args: argparse.Namespace) -> None:
+    import shlex
+
+    from agents.benchmark.leaderboard import benchmark_summary
+    from agents.benchmark.run import rebuild_leaderboard
+
+    _check_writable(Path(args.bench), "--bench", want_dir=True)
+    res = rebuild_leaderboard(args.bench, progress=args.progress,
+                              command="auv-follow " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["leaderboard"]
+                              else None)
     print(benchmark_summary(res.leaderboard, res.files))
 
 

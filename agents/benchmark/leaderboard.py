@@ -47,22 +47,59 @@ def paired_difference(episodes: pd.DataFrame, tier: str, policy: str, other: str
         ValueError: a policy has no episodes on ``tier``.
     """
     ep = episodes[episodes["tier"] == tier]
-    per_seed = []
-    for name in (policy, other):
-        d = ep[ep["policy"] == name]
-        if d.empty:
-            raise ValueError(f"policy={name!r} has no episodes on tier {tier!r}")
-        per_seed.append(pd.Series(scores(d, metric).to_numpy(), index=d["seed"].to_numpy()).groupby(level=0).mean())
-    a, b = per_seed[0].align(per_seed[1], join="inner")
-    diff = (a - b).to_numpy()
-    if diff.size == 0:
+    a, b = _per_seed(ep, policy, metric, tier)[0].align(_per_seed(ep, other, metric, tier)[0], join="inner")
+    return _boot_ci((a - b).to_numpy(), np.mean, n_resamples, seed, confidence)
+
+
+#: suffixes of the robust paired columns (:func:`robust_paired_difference`) after a prefix such as ``paired_diff``
+ROBUST_SUFFIXES = ("_kept", "_kept_lo", "_kept_hi", "_kept_seeds", "_median", "_median_lo", "_median_hi")
+
+
+def _per_seed(ep: pd.DataFrame, name: str, metric: str, tier: str) -> tuple[pd.Series, pd.Series]:
+    d = ep[ep["policy"] == name]
+    if d.empty:
+        raise ValueError(f"policy={name!r} has no episodes on tier {tier!r}")
+    score = pd.Series(scores(d, metric).to_numpy(), index=d["seed"].to_numpy()).groupby(level=0).mean()
+    lost = pd.Series(d["terminated"].astype(bool).to_numpy(), index=d["seed"].to_numpy()).groupby(level=0).any()
+    return score, lost
+
+
+def _boot_ci(x: np.ndarray, stat: Any, n_resamples: int, seed: int, confidence: float) -> tuple[float, float, float]:
+    if x.size == 0:
         return math.nan, math.nan, math.nan
-    if diff.size == 1 or np.all(diff == diff[0]):
-        return float(diff.mean()), float(diff[0]), float(diff[0])
+    est = float(stat(x))
+    if x.size == 1 or np.all(x == x[0]):
+        return est, float(x[0]), float(x[0])
     rng = np.random.default_rng(seed)
-    boot = diff[rng.integers(0, diff.size, (n_resamples, diff.size))].mean(axis=1)
+    boot = stat(x[rng.integers(0, x.size, (n_resamples, x.size))], axis=1)
     q = 100 * (1 - confidence) / 2
-    return float(diff.mean()), float(np.percentile(boot, q)), float(np.percentile(boot, 100 - q))
+    return est, float(np.percentile(boot, q)), float(np.percentile(boot, 100 - q))
+
+
+def robust_paired_difference(episodes: pd.DataFrame, tier: str, policy: str, other: str,
+                             metric: str = "true_steady_mean", *, n_resamples: int = DEFAULT_RESAMPLES,
+                             seed: int = DEFAULT_BOOTSTRAP_SEED, confidence: float = 0.95,
+                             prefix: str = "paired_diff") -> dict[str, float]:
+    """Two paired statistics that a few lost targets cannot dominate (a lost target scores the loss
+    threshold, 20 m, against errors of tenths of a metre), on the seeds both policies have [m]:
+
+    * ``<prefix>_kept``: the mean of ``policy - other`` over the seeds where neither lost the target
+      (no run of either terminated), with a bootstrap CI over those seeds; ``<prefix>_kept_seeds``: how
+      many they are;
+    * ``<prefix>_median``: the median of ``policy - other`` over all the common seeds (a lost target
+      counts as one large difference, not as its size), with a bootstrap CI.
+
+    Raises:
+        ValueError: a policy has no episodes on ``tier``.
+    """
+    ep = episodes[episodes["tier"] == tier]
+    (a, lost_a), (b, lost_b) = _per_seed(ep, policy, metric, tier), _per_seed(ep, other, metric, tier)
+    a, b = a.align(b, join="inner")
+    lost = (lost_a.reindex(a.index) | lost_b.reindex(a.index)).to_numpy()
+    diff = (a - b).to_numpy()
+    kept = _boot_ci(diff[~lost], np.mean, n_resamples, seed, confidence)
+    median = _boot_ci(diff, np.median, n_resamples, seed, confidence)
+    return dict(zip((prefix + s for s in ROBUST_SUFFIXES), (*kept, float((~lost).sum()), *median), strict=True))
 
 
 def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_METRICS,
@@ -95,7 +132,10 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
         classical baseline), ``poi``, ``poi_lo``, ``poi_hi``; ``run_iqm_min`` /
         ``run_iqm_max`` (spread of the per-run IQMs of ``metrics[0]``); ``paired_diff``,
         ``paired_diff_lo``, ``paired_diff_hi`` (:func:`paired_difference` of ``metrics[0]`` against
-        the best classical baseline, same seeds, in m); with reference rows
+        the best classical baseline, same seeds, in m) and its robust companions ``paired_diff_kept``
+        (+ ``_lo``, ``_hi``, ``_seeds``: seeds where neither lost the target) and ``paired_diff_median``
+        (+ ``_lo``, ``_hi``) (:func:`robust_paired_difference`; the same after ``paired_diff_base`` and
+        ``paired_diff_filtered``); ``lost_targets`` (terminated episodes); with reference rows
         (``kind="reference"``, the floors of :mod:`agents.benchmark.floors`) also ``gap_closed``.
     """
     need = {"tier", "policy", "kind", "run", "terminated", *metrics}
@@ -132,10 +172,12 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
         per_run = [float(iqm(scores(d[d["run"] == r], m0).to_numpy())) for r in d["run"].unique()]
         row["run_iqm_min"], row["run_iqm_max"] = min(per_run), max(per_run)
         row["termination_rate"] = float(d["terminated"].astype(bool).mean())
+        row["lost_targets"] = int(d["terminated"].astype(bool).sum())
         rows.append(row)
     board = pd.DataFrame(rows)
     board["best_classical"] = None
-    for c in (f"{m0}_iqm_change_pct", "poi", "poi_lo", "poi_hi", "paired_diff", "paired_diff_lo", "paired_diff_hi"):
+    for c in (f"{m0}_iqm_change_pct", "poi", "poi_lo", "poi_hi", "paired_diff", "paired_diff_lo", "paired_diff_hi",
+              *("paired_diff" + x for x in ROBUST_SUFFIXES)):
         board[c] = np.nan
     for tier, idx in board.groupby("tier", sort=False).groups.items():
         sub = board.loc[idx]
@@ -156,11 +198,15 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
                 board.loc[i, ["paired_diff", "paired_diff_lo", "paired_diff_hi"]] = paired_difference(
                     ep_t, tier, board.at[i, "policy"], best, m0, n_resamples=n_resamples, seed=seed,
                     confidence=confidence)
+                for c, v in robust_paired_difference(ep_t, tier, board.at[i, "policy"], best, m0,
+                                                     n_resamples=n_resamples, seed=seed,
+                                                     confidence=confidence).items():
+                    board.at[i, c] = v
     board["observation"] = [str((observations or {}).get(p, "")) for p in board["policy"]]
     for col, table in (("base", bases), ("filtered_law", filtered)):
         key = "paired_diff_" + ("base" if col == "base" else "filtered")
         board[col] = ""
-        for c in (key, f"{key}_lo", f"{key}_hi"):
+        for c in (key, f"{key}_lo", f"{key}_hi", *(key + x for x in ROBUST_SUFFIXES)):
             board[c] = math.nan
         for i in board.index:
             other = (table or {}).get(board.at[i, "policy"])
@@ -170,6 +216,10 @@ def leaderboard(episodes: pd.DataFrame, *, metrics: Sequence[str] = LEADERBOARD_
                 board.loc[i, [key, f"{key}_lo", f"{key}_hi"]] = paired_difference(
                     ep_t, board.at[i, "tier"], board.at[i, "policy"], other, m0, n_resamples=n_resamples,
                     seed=seed, confidence=confidence)
+                for c, v in robust_paired_difference(ep_t, board.at[i, "tier"], board.at[i, "policy"], other, m0,
+                                                     n_resamples=n_resamples, seed=seed, confidence=confidence,
+                                                     prefix=key).items():
+                    board.at[i, c] = v
     if (board["kind"] == "reference").any():  # floors (agents/benchmark/floors.py): their gap column
         from agents.benchmark.floors import add_gap_closed
 
@@ -259,6 +309,16 @@ def _md(value: Any) -> str:
     return html.escape(" ".join(str(value).split()), quote=False).replace("|", "\\|")
 
 
+def _robust_text(r: Mapping[str, Any], prefix: str) -> str:
+    """"neither lost <ci> (<n> seeds); median <ci>" from a board row, or "-"."""
+    kept = r.get(f"{prefix}_kept")
+    if kept is None or not np.isfinite(r.get(f"{prefix}_median", math.nan)):
+        return "-"
+    text = "-" if not np.isfinite(kept) else _fmt_ci(kept, r[f"{prefix}_kept_lo"], r[f"{prefix}_kept_hi"])
+    return (f"neither lost {text} ({int(r[f'{prefix}_kept_seeds'])} seeds); median "
+            f"{_fmt_ci(r[f'{prefix}_median'], r[f'{prefix}_median_lo'], r[f'{prefix}_median_hi'])}")
+
+
 def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = None,
                          metrics: Sequence[str] = LEADERBOARD_METRICS) -> str:
     """The leaderboard as Markdown: one table per tier (errors in m, 95 % CIs in brackets)."""
@@ -268,7 +328,10 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
              "P(better) = probability that an episode has a lower steady-state error than one of the tier's best "
              "classical baseline (rliable's probability of improvement, unpaired); paired diff = mean over the "
              "test seeds of (this policy's steady-state error - the best classical's on the same seed), runs "
-             "averaged per seed, with a 95 % bootstrap CI over seeds (negative: better); for a residual agent the "
+             "averaged per seed, with a 95 % bootstrap CI over seeds (negative: better); robust paired diff = "
+             "the same mean over the seeds where neither lost the target (no run terminated; their number in "
+             "brackets) and the paired median over all seeds, each with its 95 % bootstrap CI: a lost target "
+             "scores 20 m and can make a paired mean by itself; for a residual agent the "
              "same against its own base controller (obs: what its observation carries: raw = the env's fields "
              "and the base action, estimator = also a target filter's estimate), and, where that filter is one "
              "its base lacks, against the same law on that filter; a terminated episode scores the loss "
@@ -284,8 +347,10 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
         for m in metrics:
             short = m.replace("true_", "").replace("_mean", "")
             head += [f"{short} IQM", f"{short} mean"]
-        head += ["vs best classical (IQM)", "paired diff vs best classical [m]", "P(better) vs best classical",
-                 "terminated"]
+        robust = "paired_diff_kept" in sub and sub["paired_diff_kept"].notna().any()
+        head += ["vs best classical (IQM)", "paired diff vs best classical [m]"]
+        head += ["robust paired diff vs best classical [m]"] if robust else []
+        head += ["P(better) vs best classical", "terminated" + (" (lost targets)" if "lost_targets" in sub else "")]
         has_base = "base" in sub and (sub["base"].fillna("") != "").any()
         head += ["paired diff vs its base [m]"] if has_base else []
         has_filtered = "filtered_law" in sub and (sub["filtered_law"].fillna("") != "").any()
@@ -304,12 +369,17 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
             pdiff = r.get("paired_diff")
             cells.append("-" if pdiff is None or not np.isfinite(pdiff) or r["policy"] == best else
                          _fmt_ci(pdiff, r["paired_diff_lo"], r["paired_diff_hi"]))
+            if robust:
+                cells.append("-" if r["policy"] == best else _robust_text(r, "paired_diff"))
             cells.append(_fmt_ci(r["poi"], r["poi_lo"], r["poi_hi"], 2))
-            cells.append(f"{100 * r['termination_rate']:.0f} %")
+            lost = f" ({int(r['lost_targets'])})" if "lost_targets" in r and np.isfinite(r["lost_targets"]) else ""
+            cells.append(f"{100 * r['termination_rate']:.0f} %{lost}")
             if has_base:
                 ci = _fmt_ci(r["paired_diff_base"], r["paired_diff_base_lo"], r["paired_diff_base_hi"])
                 obs = f"; obs {_md(r['observation'])}" if r.get("observation") else ""
-                cells.append(f"{ci} (base {_md(r['base'])}{obs})" if r.get("base") else "-")
+                rob = _robust_text(r, "paired_diff_base")
+                rob = f"; robust: {rob}" if rob != "-" else ""
+                cells.append(f"{ci} (base {_md(r['base'])}{obs}{rob})" if r.get("base") else "-")
             if has_filtered:
                 ci = _fmt_ci(r["paired_diff_filtered"], r["paired_diff_filtered_lo"], r["paired_diff_filtered_hi"])
                 cells.append(f"{ci} ({_md(r['filtered_law'])})" if r.get("filtered_law") else "-")

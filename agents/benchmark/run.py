@@ -187,3 +187,38 @@ def _check_cluster_tiers(frames: list[pd.DataFrame], specs: Sequence[PolicySpec]
             if label not in got[t]:
                 warnings.warn(f"{t}: {label!r} cannot run on {resolve_tier(t)[1]} and is left out of this tier",
                               stacklevel=3)
+
+
+def rebuild_leaderboard(out_dir: str | Path, *, command: str | None = None, progress: bool = True) -> BenchmarkResult:
+    """Recompute the leaderboard of a benchmark folder from its stored episodes (no episode runs) with
+    the folder's bootstrap settings and each row's base / observation / filtered law, and write the
+    set again (atomically). The provenance keeps the episodes' own and adds ``rebuilt``: the command,
+    the versions of this computation and what changed.
+
+    Raises:
+        ValueError: the folder is not a complete, consistent benchmark (:func:`load_result`).
+    """
+    from agents.benchmark.outputs import load_result
+
+    out = Path(out_dir)
+    res = load_result(out)
+    cfg = res.provenance.get("config", {})
+    old = res.leaderboard
+
+    def column(name: str) -> dict[str, str]:
+        if name not in old:
+            return {}
+        return {str(p): str(v) for p, v in zip(old["policy"], old[name], strict=True)
+                if isinstance(v, str) and v}
+
+    board = leaderboard(res.episodes, n_resamples=int(cfg.get("n_resamples", DEFAULT_RESAMPLES)),
+                        seed=int(cfg.get("bootstrap_seed", DEFAULT_BOOTSTRAP_SEED)), progress=progress,
+                        bases=column("base"), observations=column("observation"), filtered=column("filtered_law"))
+    prov = {k: v for k, v in res.provenance.items() if k != "rebuilt"}
+    prov["rebuilt"] = {"command": command, "versions": provenance({})["versions"],
+                       "what": "the leaderboard recomputed from the stored episodes (episodes unchanged)"}
+    if res.traces is None:
+        raise ValueError(f"{out}: no traces.parquet: run the benchmark again to write a complete set")
+    result = BenchmarkResult(res.episodes, board, prov)
+    result.files = write_outputs(out, res.episodes, board, prov, res.traces)
+    return result
