@@ -19,6 +19,8 @@ not reached (MLPerf's rule for RL). Trainers, each named for what it gets:
   (results/benchmark/runs/bppo15-Easy-rate03-yawKFDOB-scaled-*); evaluated every 500 k steps;
 * ``student``: batched PPO distilled from PROPOSED_KF_DOB (DAgger on the real link, 4 M steps, then
   PPO), estimator observation: the committed student recipe (bppo3-Easy-distill-real-*); every 250 k;
+  Both train for 20 M steps, as the committed runs did (their learning rate decays linearly over the
+  run's steps, so the step budget is part of the recipe), and stop at the target or the cap;
 * ``sb3``: plain SB3 PPO (its default hyperparameters, VecNormalize, 4 envs) on the env's own
   observation and reward; evaluated every 32 k steps on the same 32 seeds.
 
@@ -134,7 +136,7 @@ def run_one(trainer: str, env_id: str, seed: int, goal: float, cap_s: float, wor
     else:
         table = work / name / "eval.csv"
         cmd = [sys.executable, "-m", "agents.cli", "train", "--algo", "bppo", "--env", env_id, "--seed", str(seed),
-               "--timesteps", "100000000", "--max-minutes", str(cap_s / 60.0), "--out", str(work), "--run-name", name,
+               "--timesteps", "20000000", "--max-minutes", str(cap_s / 60.0), "--out", str(work), "--run-name", name,
                "--checkpoint-freq", "0", *_BPPO[trainer]]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=open(work / f"{name}.log", "w"))
