@@ -30,6 +30,7 @@ from typing import Any
 import yaml
 
 import auv_follow_env
+from agents._cli_errors import _check_writable, _Refused
 from agents.training.config import ALGOS, MAX_N_ENVS, MODES, ConfigError, TrainConfig, TrainingInterrupted
 from agents.training.history import DEFAULT_CONTROLLER, DEFAULT_HISTORY_LEN, DEFAULT_HISTORY_STRIDE, DEFAULT_SCALE
 from auv_follow_env._signals import exit_code, stop_name, stop_on_signals
@@ -241,26 +242,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_data_commands(sub, _Formatter, ENV_CHOICES, _seeds)
     return p
-
-
-class _Refused(Exception):
-    """A setting refused after parsing: (flag, message)."""
-
-
-def _check_writable(path: Path, flag: str, want_dir: bool) -> None:
-    """Refuse an output path that cannot be written, without creating anything."""
-    if path.exists():
-        if want_dir and not path.is_dir():
-            raise _Refused(flag, f"{path} exists and is not a directory")
-        if not want_dir and path.is_dir():
-            raise _Refused(flag, f"{path} is a directory: give a file name, e.g. {path / 'eval.csv'}")
-    anc = path if path.is_dir() else path.parent  # an existing file is overwritten: its directory must be writable
-    while not anc.exists():
-        anc = anc.parent
-    if not anc.is_dir():
-        raise _Refused(flag, f"cannot create {path}: {anc} is not a directory")
-    if not os.access(anc, os.W_OK):
-        raise _Refused(flag, f"cannot write {path}: {anc} is not writable")
 
 
 def _load(path: str, flag: str):

@@ -96,9 +96,9 @@ def _ref_episodes(text: str) -> int:
 def _cmd_dataset(args: argparse.Namespace) -> None:
     import os
 
+    from agents._cli_errors import _Refused
     from agents.benchmark.policies import _controllers
     from agents.benchmark.protocol import resolve_tier
-    from agents.cli import _Refused
     from agents.datasets import (
         DEFAULT_TRAIN_SEEDS,
         DatasetUnavailable,
@@ -137,7 +137,7 @@ def _cmd_trace(args: argparse.Namespace) -> None:
     import gymnasium as gym
     import numpy as np
 
-    from agents.cli import _check_writable, _Refused
+    from agents._cli_errors import _check_writable, _Refused
     from auv_follow_env.link_trace import _kind, record_link_trace
 
     if len(args.seed) != 1:

@@ -67,7 +67,10 @@ def test_a_residual_is_paired_with_its_own_base(tmp_path):
         pytest.approx([-0.4, -0.4, -0.4])
     assert board.loc["A", "paired_diff"] == pytest.approx(-0.1)  # against the best classical B
     assert pd.isna(board.loc["B", "paired_diff_base"])
-    assert "-0.4000 [-0.4000, -0.4000] (base C)" in leaderboard_markdown(board.reset_index())
+    # no seed lost a target, so the robust statistics equal the paired mean: -0.4 on all 3 seeds
+    ci = "-0.4000 [-0.4000, -0.4000]"
+    assert f"{ci} (base C; robust: neither lost {ci} (3 seeds); median {ci})" in \
+        leaderboard_markdown(board.reset_index())
     # the base is read from the runs' config.yaml; a method mixing bases (or not residual) has none
     for name, mode, ctrl in (("r0", "residual", "PROPOSED"), ("r1", "residual", "PROPOSED"),
                              ("r2", "residual", "PID"), ("r3", "scratch", None)):
@@ -116,4 +119,6 @@ def test_a_residual_carrying_a_filter_is_also_paired_with_the_law_on_that_filter
     assert board.loc["R", "paired_diff_filtered"] == pytest.approx(0.0, abs=1e-12)
     assert board.loc["R", "filtered_law"] == "PROPOSED_KF" and board.loc["R", "observation"] == "estimator"
     md = leaderboard_markdown(board.reset_index())
-    assert "(base PROPOSED; obs estimator)" in md and "(PROPOSED_KF)" in md
+    ci = "-0.2000 [-0.2000, -0.2000]"
+    assert f"(base PROPOSED; obs estimator; robust: neither lost {ci} (3 seeds); median {ci})" in md
+    assert "(PROPOSED_KF)" in md
