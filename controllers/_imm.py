@@ -7,7 +7,9 @@ position, for a batch of envs in one call.
 State (5): ``x, y, psi`` (odometry frame [m, m, rad]), ``u`` (surge [m/s]), ``r`` (turn rate
 [rad/s]; held at 0 in CV). Motion over a span T: CV straight at speed u along psi; CT the exact
 arc at constant u and r. Jacobians in closed form; the discrete process noise
-int_0^T Phi Q_c Phi^T ds by Simpson's rule along the mean. Process noise intensities: ``q_u``
+int_0^T Phi Q_c Phi^T ds by Simpson's rule along the mean (composite, over ``C_QN`` panels; 0 or
+1: the plain rule, nodes 0, T/2, T; experiments/quadrature_study.py measures what more panels
+change). Process noise intensities: ``q_u``
 [m^2/s^3] on the speed (both models), ``q_r`` [rad^2/s^3] on the turn rate (CT), ``q_h``
 [rad^2/s] on the heading (CV: a slow drift of a straight course). The models switch as a
 two-state Markov chain with mean sojourn ``tau_s`` [s] (probability of a switch over T:
@@ -46,8 +48,8 @@ from controllers._ou0 import (
 # config vector (float64) indices
 C_DT, C_TAU, C_V1 = 0, 1, 2
 C_SPOS, C_SPM, C_SPSI, C_SVEL, C_SR = 3, 4, 5, 6, 7
-C_QU, C_QR, C_QH, C_TS, C_GATE = 8, 9, 10, 11, 12
-NC = 13
+C_QU, C_QR, C_QH, C_TS, C_GATE, C_QN = 8, 9, 10, 11, 12, 13
+NC = 14
 GATE_POS = 13.815510557964274  #: chi-square(2) 99.9 % quantile
 NX = 5
 
@@ -113,9 +115,11 @@ def _prop(x, T, turn, out, J):
 
 
 @njit(cache=True)
-def _predict(x0, P0, T, turn, qc, m, P, tmp5, J, Jh, tmpm):
+def _predict(x0, P0, T, turn, qc, m, P, tmp5, J, Jh, tmpm, panels):
     """Mean m and covariance P of one model after T from (x0, P0): J P0 J^T plus the discrete
-    process noise by Simpson's rule (weights 1, 4, 1 at 0, T/2, T). Returns (cos, sin) of m[2]."""
+    process noise by composite Simpson's rule over ``panels`` panels (weights 1, 4, 2, ..., 4, 1 at
+    k T / (2 panels); one panel: 1, 4, 1 at 0, T/2, T, the same operations as the plain rule).
+    Returns (cos, sin) of m[2]."""
     ce, se = _prop(x0, T, turn, m, J)
     for a in range(NX):
         for b in range(NX):
@@ -131,9 +135,11 @@ def _predict(x0, P0, T, turn, qc, m, P, tmp5, J, Jh, tmpm):
             P[a, b] = acc
     if T <= 0.0:
         return ce, se
-    for node in range(3):
-        f = 0.5 * node
-        w = (1.0, 4.0, 1.0)[node] * T / 6.0
+    nodes = 2 * panels
+    for node in range(nodes + 1):
+        f = node / nodes
+        coef = 1.0 if node == 0 or node == nodes else (4.0 if node % 2 == 1 else 2.0)
+        w = coef * T / (6.0 * panels)
         _prop(x0, f * T, turn, tmp5, Jh)  # the mean at f T ...
         _prop(tmp5, (1.0 - f) * T, turn, tmp5, Jh)  # ... and Phi(T, f T) there (tmp5 is overwritten, unused)
         for a in range(NX):
@@ -210,9 +216,10 @@ def _interact_predict(m, P, mu, T, cfg, with_cov, w, dpsi):
     qc[1, 3] = cfg[C_QU]
     qc[1, 4] = cfg[C_QR]
     _mix(m, P, mu, T, cfg[C_TS], c, x0, P0, with_cov, d, dpsi)
+    panels = max(1, int(cfg[C_QN]))
     for j in range(2):
         if with_cov:
-            cs[j, 0], cs[j, 1] = _predict(x0[j], P0[j], T, j == 1, qc[j], mp[j], Pp[j], tmp5, J, Jh, tmpm)
+            cs[j, 0], cs[j, 1] = _predict(x0[j], P0[j], T, j == 1, qc[j], mp[j], Pp[j], tmp5, J, Jh, tmpm, panels)
         else:
             cs[j, 0], cs[j, 1] = _prop(x0[j], T, j == 1, mp[j], J)
     return c, mp, Pp

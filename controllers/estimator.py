@@ -142,7 +142,8 @@ _REAL_BOUNDS: dict[str, tuple[float, float, bool, str]] = {
     "pf_temper": (0.0, 1e3, True, "-"), "pf_drift": (0.0, 1e3, False, "m^2/s"),
 }
 #: EstimatorConfig's whole-number settings: (low, high)
-_WHOLE_BOUNDS: dict[str, tuple[int, int]] = {"limm_shape": (1, 4), "pf_particles": (1, 100_000)}
+_WHOLE_BOUNDS: dict[str, tuple[int, int]] = {"limm_shape": (1, 4), "pf_particles": (1, 100_000),
+                                              "imm_q_panels": (1, 64)}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -177,6 +178,9 @@ class EstimatorConfig:
     imm_q_h: float = 0.001  #: IMM: white-noise intensity on the heading (CV) [rad^2/s]
     imm_tau_s: float = 15.0  #: IMM: mean time between switches of the CV / CT models [s] (> 0)
     imm_gate: bool = True  #: IMM: a fix's position outside the 99.9 % chi-square gate of both models is not used
+    #: IMM: panels of the composite Simpson rule for the process noise, 1-64 (1: the plain rule, nodes 0, T/2, T;
+    #: experiments/quadrature_study.py measured what 16 change on the Leader tiers)
+    imm_q_panels: int = 1
     limm_q_u: float = 0.001  #: LEADER_IMM: white-noise intensity on the speed [m^2/s^3]
     limm_q_h: float = 0.01  #: LEADER_IMM: white-noise intensity on the heading [rad^2/s]
     limm_q_r: float = 0.0001  #: LEADER_IMM: white-noise intensity on the turn rate [rad^2/s^3]
@@ -692,7 +696,7 @@ class TargetEstimator:
         cfg[k.C_SPOS], cfg[k.C_SPM], cfg[k.C_SPSI] = c.sigma_pos, c.sigma_pos_per_m, c.sigma_psi
         cfg[k.C_SVEL], cfg[k.C_SR] = c.sigma_vel, c.sigma_r
         cfg[k.C_QU], cfg[k.C_QR], cfg[k.C_QH] = c.imm_q_u, c.imm_q_r, c.imm_q_h
-        cfg[k.C_TS], cfg[k.C_GATE] = c.imm_tau_s, float(c.imm_gate)
+        cfg[k.C_TS], cfg[k.C_GATE], cfg[k.C_QN] = c.imm_tau_s, float(c.imm_gate), float(c.imm_q_panels)
         return cfg
 
     def _run_imm(self, st: _IMMState, obs: np.ndarray, mask: np.ndarray, with_cov: bool,

@@ -84,7 +84,8 @@ def test_ranges_that_keep_the_rule_for_every_draw_are_accepted():
 
 @pytest.mark.parametrize(("field", "value"), [
     ("pf_temper", 0.0), ("pf_temper", 1e308), ("limm_sojourn", 1e308), ("q_acc", 1e308), ("tau_u", -1.0),
-    ("pf_particles", 0), ("limm_shape", 9), ("sigma_pos", float("nan"))])
+    ("pf_particles", 0), ("limm_shape", 9), ("sigma_pos", float("nan")), ("imm_q_panels", 0), ("imm_q_panels", 65),
+    ("imm_q_panels", 2.5)])
 def test_estimator_settings_outside_their_bounds_are_refused_by_name(field, value):
     with pytest.raises(ValueError, match=rf"{field}=.* is invalid"):
         EstimatorConfig(**{field: value})
