@@ -13,7 +13,7 @@ controller's error in closed loop, on the tier's 100 published test seeds (scori
 * **Tracking cost** = closed loop / estimation alone: how much a follower loses tracking that estimate
   (1.0 would be a perfect tracker of a perfect copy of the estimate).
 
-The oracle-parameter floor (today's "information floor": a filter that knows each episode's drawn
+The oracle-parameter floor (named "information floor" before 2026-12-07: a filter that knows each episode's drawn
 parameters) is shown beside for scale; it is not a follower's reachable floor.
 Writes results/gap_decomposition.md.
 """
@@ -58,7 +58,7 @@ def tier_rows(tier: str, board: pd.DataFrame, progress: bool) -> list[str]:
     data = le.record(tier, tuple(LEADER_TIERS[tier].test_seeds), scoring=True)
     spec = data["spec"]
     sub = board[board["tier"] == tier].set_index("policy")
-    floor = sub.loc["information floor"] if "information floor" in sub.index else None
+    floor = sub.loc["oracle-parameter floor"] if "oracle-parameter floor" in sub.index else None
     rows = []
     for name in CONTROLLERS:
         if name not in sub.index:

@@ -8,7 +8,7 @@ Each run's ``eval.csv`` holds, every million steps, the steady-state (t >= 10 s)
 error over its fixed evaluation seeds (990,000-990,031 by default, 500-531 for runs made before
 those were held out). On each run's own seeds and tier this script scores the best classical
 controllers (PROPOSED_KF_DOB and MPC; on a Leader tier also the generic PROPOSED_IMM_DOB) and
-computes the information floor (agents/benchmark/floors.py: the Kalman floor on the v1 tiers, the
+computes the oracle-parameter floor (agents/benchmark/floors.py: the Kalman floor on the v1 tiers, the
 Bayes particle floor on the Leader tiers, cached in results/tmp/bench-cache), and draws them as
 horizontal lines: a curve that flattens above them has converged to something worse; one still
 falling was stopped early.
@@ -54,7 +54,7 @@ def _runs(paths: list[Path]) -> list[Path]:
 
 
 def references(env_id: str, seeds: list[int]) -> dict[str, float]:
-    """IQM of the steady-state error of the best classical controllers and the information floor's
+    """IQM of the steady-state error of the best classical controllers and the oracle-parameter floor's
     expected error on ``seeds`` (training-range seeds only)."""
     import gymnasium as gym
 
@@ -75,7 +75,7 @@ def references(env_id: str, seeds: list[int]) -> dict[str, float]:
         inf = floors.leader_floor(tier, seeds, cache_dir=FLOOR_CACHE, progress=True)
     else:
         return out
-    out["information floor"] = _iqm(inf["expected_steady_mean"].dropna().to_numpy())
+    out["oracle-parameter floor"] = _iqm(inf["expected_steady_mean"].dropna().to_numpy())
     return out
 
 
@@ -141,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
              "Steady-state true-reference error, IQM over each run's evaluation seeds (training range); the "
              "references are scored on the same seeds.", "",
              "| run | env | mode | observation | steps | wall clock [min] | first IQM [m] | final IQM [m] "
-             "| best classical on these seeds [m] | information floor [m] |",
+             "| best classical on these seeds [m] | oracle-parameter floor [m] |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for ax, env in zip(axes[0], envs, strict=True):
         mine = [i for i in info if i["env"] == env]
@@ -171,13 +171,13 @@ def main(argv: list[str] | None = None) -> int:
             label = i["run"].name
             cfg = i["cfg"]
             refs = ref_sets[tuple(i["seeds"])]
-            best = min(v for n, v in refs.items() if n != "information floor")
-            floor = f"{refs['information floor']:.4f}" if "information floor" in refs else "-"
+            best = min(v for n, v in refs.items() if n != "oracle-parameter floor")
+            floor = f"{refs['oracle-parameter floor']:.4f}" if "oracle-parameter floor" in refs else "-"
             lines.append(f"| {label} | {env} | {i['mode']} | {cfg.get('run', {}).get('observation', '-')} "
                          f"| {int(cfg.get('steps_done', ev['steps'].iloc[-1])):,} "
                          f"| {float(cfg.get('train_seconds', 0.0)) / 60:.0f} | {y.iloc[0]:.4f} | {y.iloc[-1]:.4f} "
                          f"| {best:.4f} | {floor} |")
-        styles = {"PROPOSED_KF_DOB": ("k", "--"), "MPC": ("k", "-."), "information floor": ("0.45", ":"),
+        styles = {"PROPOSED_KF_DOB": ("k", "--"), "MPC": ("k", "-."), "oracle-parameter floor": ("0.45", ":"),
                   "PROPOSED_IMM_DOB": ("0.3", (0, (1, 1)))}
         for seeds, refs in ref_sets.items():
             where = f", seeds {seeds[0]}-{seeds[-1]}" if len(ref_sets) > 1 else ""

@@ -1,4 +1,4 @@
-"""The Leader tiers' information floor (agents/benchmark/bayes_floor.py): a particle filter under
+"""The Leader tiers' oracle-parameter floor (agents/benchmark/bayes_floor.py): a particle filter under
 the true generator. Expectations worked out independently: the truncated Erlang law in closed
 form, geometric medians of configurations whose median is known, and on a one-mode leader (a
 target whose speed and turn rate are Ornstein-Uhlenbeck processes) the v1 tiers' Kalman floor."""

@@ -60,7 +60,7 @@ def test_cluster_run_gives_the_local_tables(head, tmp_path):
     a = pd.read_parquet(tmp_path / "local" / "episodes.parquet")
     b = pd.read_parquet(tmp_path / "ray" / "episodes.parquet")
     pd.testing.assert_frame_equal(b, a)  # the same host: the same rows, in the same order
-    assert set(a["policy"]) == {"PID", "PROPOSED_KF_DOB", "PROPOSED", "control floor", "information floor"}
+    assert set(a["policy"]) == {"PID", "PROPOSED_KF_DOB", "PROPOSED", "control floor", "oracle-parameter floor"}
     assert len(a) == 2 * 2 * 5 + 2 * 5  # 2 tiers x 2 policies x 5 seeds, and Hard's two floors (none on S2)
     assert (tmp_path / "ray" / "leaderboard.csv").read_text() == (tmp_path / "local" / "leaderboard.csv").read_text()
 

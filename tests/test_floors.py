@@ -1,4 +1,4 @@
-"""Floors per tier (agents/benchmark/floors.py): the information floor against closed forms and Monte
+"""Floors per tier (agents/benchmark/floors.py): the oracle-parameter floor against closed forms and Monte
 Carlo, the packets recovered from the observations, the perfect link, the leaderboard rows."""
 
 from __future__ import annotations
@@ -263,7 +263,7 @@ def test_add_gap_closed_by_hand():
     assert g["Hard/B"] == pytest.approx(-1.0)  # (0.40 - 0.50) / (0.40 - 0.30)
     assert g["Hard/C"] == pytest.approx(0.5)  # (0.40 - 0.35) / 0.10
     assert math.isnan(g[f"Hard/{floors.INFORMATION_FLOOR}"]) and math.isnan(g[f"Hard/{floors.CONTROL_FLOOR}"])
-    assert math.isnan(g["Easy/A"])  # no information floor on that tier
+    assert math.isnan(g["Easy/A"])  # no oracle-parameter floor on that tier
 
 
 def test_gap_closed_is_measured_from_the_best_generic_classical():
@@ -293,13 +293,13 @@ def test_bad_arguments():
         floors.record_episodes("Easy", [1], "NOPE")
     with pytest.raises(ValueError, match="obs has shape"):
         perfect_link.perfect_link_observation(np.zeros((2, 16)), np.zeros((2, 6)), np.zeros((2, 3)), (0, 0))
-    with pytest.raises(ValueError, match="information floor exists for the v1 tiers"):
+    with pytest.raises(ValueError, match="oracle-parameter floor exists for the v1 tiers"):
         floors.information_floor("Leader-Hard", [1])
 
 
 def test_a_leader_tier_has_both_floors_its_information_floor_a_particle_filter():
     """The control floor (a perfect link) does not depend on the target's model; a Leader tier's
-    information floor is the particle filter under the true generator (a linear filter's
+    oracle-parameter floor is the particle filter under the true generator (a linear filter's
     posterior would be wrong there), and lies above the control floor."""
     df = floors.floor_episodes("Leader-Hard", [1], controllers=["PROPOSED_KF_DOB"])
     assert set(df["policy"]) == {floors.CONTROL_FLOOR, floors.INFORMATION_FLOOR}

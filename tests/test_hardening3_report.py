@@ -341,13 +341,13 @@ def test_styles_one_colour_per_policy_by_family_and_rank():
     c = [("A", 0.1), ("B", 0.2), ("C", 0.3), ("D", 0.4), ("E", 0.5)]
     t2 = {"A": 0.1, "D": 0.2, "B": 0.3, "C": 0.4, "E": 0.5}
     board = _board({
-        "T1": [("control floor", "reference", 0.001), ("information floor", "reference", 0.05),
+        "T1": [("control floor", "reference", 0.001), ("oracle-parameter floor", "reference", 0.05),
                *((p, "classical", v) for p, v in c),
                *((f"L{k}", "learned", 0.1 + 0.1 * k) for k in range(1, 6)), ("X", "<b>odd kind</b>", 0.3)],
-        "T2": [("control floor", "reference", 0.001), ("information floor", "reference", 0.05),
+        "T2": [("control floor", "reference", 0.001), ("oracle-parameter floor", "reference", 0.05),
                *((p, "classical", v) for p, v in t2.items()), ("L5", "learned", 0.2), ("L6", "learned", 0.3)]})
     st = R._policy_styles(board)
-    assert {p for p, s in st.items() if s.shown} == {"information floor", "A", "B", "C", "D", "L1", "L2", "L3",
+    assert {p for p, s in st.items() if s.shown} == {"oracle-parameter floor", "A", "B", "C", "D", "L1", "L2", "L3",
                                                       "L5", "L6", "X"}
     colors = [s.color for s in st.values()]
     assert len(set(colors)) == len(colors)
@@ -363,7 +363,7 @@ def test_styles_one_colour_per_policy_by_family_and_rank():
             assert 295 <= hue <= 340 and s.family == "other", (p, s.color, hue)
     # legend order: floors, classical, learned, other; best first within a family
     order = sorted(st, key=lambda p: st[p].rank)
-    assert order[:2] == ["control floor", "information floor"] and order[2:7] == ["A", "B", "D", "C", "E"]
+    assert order[:2] == ["control floor", "oracle-parameter floor"] and order[2:7] == ["A", "B", "D", "C", "E"]
     assert order[-1] == "X"
     # the default-drawn policies of a tier are told apart by their colours (the floors also by dashes)
     for tier in ("T1", "T2"):
@@ -411,12 +411,12 @@ def test_long_legend_entries_are_wrapped_and_their_rows_get_the_room():
 def test_gap_closed_is_explained_with_the_folder_own_numbers():
     """Information floor 0.0173, best classical 0.0186, a policy at 0.5: gap closed = (0.0186 - 0.5) /
     (0.0186 - 0.0173) = -0.4814 / 0.0013 = -370.31 (by hand); the page says what it is and why it is so low."""
-    board = _board({"Easy": [("information floor", "reference", 0.0173), ("A", "classical", 0.0186),
+    board = _board({"Easy": [("oracle-parameter floor", "reference", 0.0173), ("A", "classical", 0.0186),
                              ("B", "classical", 0.5)]})
     board["gap_closed"] = [np.nan, 0.0, (0.0186 - 0.5) / (0.0186 - 0.0173)]
     text = R._columns_html(board, gap=True, has_base=False)
     assert "<dt>gap closed [-]</dt>" in text and "very negative" in text
-    assert "only 0.0013 m above the information floor (0.0173 m)" in text and "-370.31" in text
+    assert "only 0.0013 m above the oracle-parameter floor (0.0173 m)" in text and "-370.31" in text
 
 
 def test_page_explains_every_column_once_and_has_one_heading_per_section(bench, tmp_path):

@@ -51,3 +51,40 @@ def test_leaderboard_carries_them_and_the_lost_count():
     assert a["lost_targets"] == 1 and a["paired_diff_kept_seeds"] == 4
     assert a["paired_diff_kept"] == pytest.approx(-0.0125)
     assert board.set_index("policy").loc["B", "lost_targets"] == 0
+
+
+def test_a_folder_from_before_the_floor_rename_reads_and_rebuilds_with_the_new_name(tmp_path):
+    """A benchmark folder written when the oracle-parameter floor was called "information floor"
+    loads with today's name, and `auv-follow leaderboard` rebuilds the same numbers under it."""
+    import hashlib
+    import json
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from agents.benchmark import benchmark
+    from agents.benchmark.floors import INFORMATION_FLOOR
+    from agents.benchmark.outputs import load_result
+    from agents.benchmark.run import rebuild_leaderboard
+
+    out = tmp_path / "bench"
+    res = benchmark(["PROPOSED_KF_DOB"], tiers=["Hard"], seeds=[0, 1, 2], floors=True, out_dir=out,
+                    n_resamples=200, progress=False)
+    assert INFORMATION_FLOOR in set(res.leaderboard["policy"])
+    want = res.leaderboard.set_index("policy")["true_steady_mean_iqm"]
+    for name in ("episodes.parquet", "traces.parquet"):  # the old label, metadata kept
+        t = pq.read_table(out / name)
+        df = t.to_pandas()
+        df["policy"] = df["policy"].replace({INFORMATION_FLOOR: "information floor"})
+        pq.write_table(pa.Table.from_pandas(df, preserve_index=False).replace_schema_metadata(t.schema.metadata),
+                       out / name)
+    csv = out / "leaderboard.csv"
+    csv.write_text(csv.read_text().replace(INFORMATION_FLOOR, "information floor"))
+    meta = json.loads((out / "benchmark.json").read_text())
+    meta["files"]["leaderboard.csv"]["sha256"] = hashlib.sha256(csv.read_bytes()).hexdigest()
+    (out / "benchmark.json").write_text(json.dumps(meta))
+    old = load_result(out)
+    for frame in (old.episodes, old.leaderboard):
+        assert "information floor" not in set(frame["policy"]) and INFORMATION_FLOOR in set(frame["policy"])
+    again = rebuild_leaderboard(out, progress=False).leaderboard.set_index("policy")["true_steady_mean_iqm"]
+    assert again.to_dict() == pytest.approx(want.to_dict())

@@ -16,9 +16,11 @@ leaderboard's policies:
   :func:`perfect_link_overrides`, instead changes how many random numbers the link draws
   and hence the target path; ``tests/test_floors.py`` checks that the substituted
   observation equals those overrides on a link that draws none.)
-* **Information floor** (:func:`information_floor`): the expected error of the optimal
+* **Oracle-parameter floor** (:func:`information_floor`; the row :data:`INFORMATION_FLOOR`, named
+  "information floor" before 2026-12-07): the expected error of the optimal
   estimate of the present reference point given the packets the follower actually received,
-  with the episode's true parameters (docs/benchmark.md, "Floors"): a Kalman filter with the
+  *with the episode's true parameters* - what no follower knows, so it bounds every follower
+  but is not one a follower can reach (docs/benchmark.md, "Floors"): a Kalman filter with the
   target's true Ornstein-Uhlenbeck speed and turn-rate model and fix noise, linearised about
   the true trajectory, run on the actual packet timing (measurement and arrival steps
   recovered from the observations), gives the posterior covariance of the reference point
@@ -29,7 +31,7 @@ leaderboard's policies:
 
 :func:`floor_episodes` returns both floors as rows of the benchmark's episodes table with
 ``kind = "reference"`` (not competitors), and :func:`add_gap_closed` adds the leaderboard
-column ``gap_closed`` = (best classical - method) / (best classical - information floor).
+column ``gap_closed`` = (best classical - method) / (best classical - oracle-parameter floor).
 """
 
 from __future__ import annotations
@@ -59,17 +61,19 @@ from auv_follow_env.layout import OBS_INDEX_V1
 from auv_follow_env.metrics import tracking_metrics
 from auv_follow_env.perfect_link import perfect_link_observation
 
-__all__ = ["CONTROL_FLOOR", "INFORMATION_FLOOR", "REFERENCE_KIND", "DEFAULT_FOLLOWER", "ControlFloor",
+__all__ = ["CONTROL_FLOOR", "INFORMATION_FLOOR", "LEGACY_LABELS", "REFERENCE_KIND", "DEFAULT_FOLLOWER", "ControlFloor",
            "perfect_link_episodes", "control_floor",
            "record_episodes", "extract_packets", "mean_norm_2d", "delayed_kalman", "information_floor",
            "floor_episodes", "add_gap_closed", "leader_floor", "leader_bayes_floor", "LEADER_FOLLOWER"]
 
 #: leaderboard labels of the two reference rows
 CONTROL_FLOOR = "control floor"
-INFORMATION_FLOOR = "information floor"
+INFORMATION_FLOOR = "oracle-parameter floor"
+#: the row's name in benchmark folders written before 2026-12-07 (read back as :data:`INFORMATION_FLOOR`)
+LEGACY_LABELS = {"information floor": INFORMATION_FLOOR}
 #: the ``kind`` of reference rows in the episodes table and the leaderboard
 REFERENCE_KIND = "reference"
-#: controller that plays the episodes whose packets the information floor is computed from
+#: controller that plays the episodes whose packets the oracle-parameter floor is computed from
 #: (the link's timing and losses do not depend on the follower; the fix-noise sigma does, weakly,
 #: through the range: sigma = fix_sigma_m + fix_sigma_per_m * range). Ours: the best classical
 #: controller of every tier on the committed leaderboard.
@@ -88,13 +92,13 @@ _I = OBS_INDEX_V1
 
 
 def _check_tier(tier: object, information: bool = False) -> str:
-    """A tier with floors: the control floor for every v1 and Leader tier; the information floor
+    """A tier with floors: the control floor for every v1 and Leader tier; the oracle-parameter floor
     (a linear model of the target) for the v1 tiers only."""
     from auv_follow_env.tiers import ALL_TIERS, TIERS
 
     allowed = TIERS if information else ALL_TIERS
     if not isinstance(tier, str) or tier not in allowed:
-        what = ("the information floor exists for the v1 tiers (a Leader tier's target has modes: its floor is "
+        what = ("the oracle-parameter floor exists for the v1 tiers (a Leader tier's target has modes: its floor is "
                 "not a linear filter's)") if information else "floors exist for the v1 and Leader tiers"
         raise ValueError(f"tier={tier!r} is invalid: {what} {list(allowed)}")
     return tier
@@ -254,7 +258,7 @@ def _max_distance() -> float:
     return float(EnvConfig.__dataclass_fields__["max_distance_m"].default)
 
 
-# --- information floor -------------------------------------------------------------------
+# --- oracle-parameter floor -------------------------------------------------------------------
 
 def mean_norm_2d(cov: np.ndarray) -> np.ndarray:
     """E||e|| of zero-mean 2-D Gaussians with covariances ``cov`` (..., 2, 2), exactly:
@@ -577,7 +581,7 @@ def _episode_floor(target: np.ndarray, pose: np.ndarray, ref: np.ndarray, obs: n
 
 def information_floor(tier: str, seeds: Iterable[int] | None = None, follower: str = DEFAULT_FOLLOWER, *,
                       progress: bool = False, recording: dict[str, Any] | None = None) -> pd.DataFrame:
-    """The information floor of each episode of a tier (see the module docstring and
+    """The oracle-parameter floor of each episode of a tier (see the module docstring and
     docs/benchmark.md, "Floors").
 
     Args:
@@ -624,7 +628,7 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
     of :mod:`agents.benchmark.bayes_floor` on a Leader tier, its rows cached in ``cache_dir``
     if given), with the drawn condition
     (``cond_*``) and the loss threshold like :func:`agents.benchmark.evaluate_tier`'s rows.
-    The information floor's ``true_*_mean`` are the expected errors; its other metrics are NaN."""
+    The oracle-parameter floor's ``true_*_mean`` are the expected errors; its other metrics are NaN."""
     from agents.benchmark.protocol import _condition_columns
     from agents.benchmark.protocol import _max_distance as bench_max_distance
 
@@ -664,7 +668,7 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
     return df.merge(_condition_columns(env_id, seeds, spec), on="seed", how="left")
 
 
-# --- the Leader tiers' information floor (agents/benchmark/bayes_floor.py) -------------------
+# --- the Leader tiers' oracle-parameter floor (agents/benchmark/bayes_floor.py) -------------------
 
 def leader_bayes_floor(recording: dict[str, Any], params: np.ndarray, *, particles: int = DEFAULT_PARTICLES,
                 children: int = DEFAULT_CHILDREN,
@@ -729,7 +733,7 @@ def _cache_key(rec: dict[str, Any], params: np.ndarray, particles: int, children
 def leader_floor(tier: str, seeds: Iterable[int] | None = None, *, particles: int = DEFAULT_PARTICLES,
                  children: int = DEFAULT_CHILDREN, follower: str = LEADER_FOLLOWER, seed: int = 0,
                  cache_dir: str | Path | None = None, progress: bool = False) -> pd.DataFrame:
-    """The information floor of a Leader tier, per episode (:func:`leader_bayes_floor` on the episodes
+    """The oracle-parameter floor of a Leader tier, per episode (:func:`leader_bayes_floor` on the episodes
     ``follower`` plays; None seeds: the tier's published test seeds). With ``cache_dir`` the
     rows are stored there, keyed by this module's and the kernel's code, the recording, the
     episode parameters and the settings, and reused while all of them are unchanged."""
@@ -759,7 +763,7 @@ def leader_floor(tier: str, seeds: Iterable[int] | None = None, *, particles: in
 def estimator_error(recording: dict[str, Any], config: Any = None) -> np.ndarray:
     """The realised error of a :class:`controllers.estimator.TargetEstimator` (the tier's own
     settings unless ``config`` is given) on a :func:`record_episodes` recording, with the
-    information floor's conventions: the estimate of the reference point at step t uses the
+    oracle-parameter floor's conventions: the estimate of the reference point at step t uses the
     observations up to step t - 1 (predicted one control step ahead), steps before the first
     packet are left out, and the per-episode value is the mean over the steady-state window
     (t >= steady_start_s). Returns one value per episode [m] (NaN: no packet in the window)."""
@@ -796,8 +800,8 @@ def estimator_error(recording: dict[str, Any], config: Any = None) -> np.ndarray
 def add_gap_closed(board: pd.DataFrame, metric: str = "true_steady_mean") -> pd.DataFrame:
     """Add ``gap_closed`` to a leaderboard: per tier with an :data:`INFORMATION_FLOOR` row and
     a classical baseline, (best generic classical IQM - method IQM) / (best generic classical
-    IQM - information floor IQM): 0 for the best generic classical, 1 for a method at the
-    information floor, negative for one worse; NaN for reference rows and tiers without a floor.
+    IQM - oracle-parameter floor IQM): 0 for the best generic classical, 1 for a method at the
+    oracle-parameter floor, negative for one worse; NaN for reference rows and tiers without a floor.
     *Generic*: not one of ``controllers.MODEL_AWARE_CONTROLLERS`` (which know a Leader tier's
     generator); on the v1 tiers that is every classical row, the best classical."""
     from controllers import MODEL_AWARE_CONTROLLERS

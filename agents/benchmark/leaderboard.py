@@ -336,7 +336,7 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
              "and the base action, estimator = also a target filter's estimate), and, where that filter is one "
              "its base lacks, against the same law on that filter; a terminated episode scores the loss "
              "threshold" + ("; gap closed = (best generic classical IQM - this IQM) / (best generic classical IQM - "
-                            "information floor IQM), generic: not a model-aware controller (which knows a Leader "
+                            "oracle-parameter floor IQM), generic: not a model-aware controller (which knows a Leader "
                             "tier's generator)" if "gap_closed" in board and board["gap_closed"].notna().any()
                             else "") + ".", ""]
     m0 = metrics[0]

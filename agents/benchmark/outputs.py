@@ -243,6 +243,11 @@ def load_result(out_dir: str | Path) -> BenchmarkResult:
     lacks = sorted({"tier", "policy", "seed"} - set(episodes.columns))
     if lacks:
         raise ValueError(f"{out / 'episodes.parquet'} lacks columns {lacks}")
+    from agents.benchmark.floors import LEGACY_LABELS
+
+    for frame in (episodes, board, traces):  # a folder from before a floor's rename: read with today's name
+        if frame is not None and "policy" in frame:
+            frame["policy"] = frame["policy"].replace(LEGACY_LABELS)
     res = BenchmarkResult(episodes, board, prov, {})
     res.traces = traces
     return res

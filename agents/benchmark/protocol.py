@@ -43,7 +43,7 @@ CLASSICAL = "classical"
 
 
 #: leaderboard labels of the floors' reference rows (agents/benchmark/floors.py): no policy may take them
-RESERVED_LABELS: tuple[str, ...] = ("control floor", "information floor")
+RESERVED_LABELS: tuple[str, ...] = ("control floor", "oracle-parameter floor", "information floor")
 
 
 def _label_key(label: str) -> str:

@@ -139,7 +139,7 @@ def _policy_styles(board: pd.DataFrame, shown_per_family: int = SHOWN_PER_FAMILY
     A policy's family comes from its kind (the first row's). Its rank within the family: its
     best place on any tier (by steady-state IQM), then its mean log ratio to each tier's best.
     It is drawn by default if that best place is among the first ``shown_per_family`` (floors:
-    the information floor). Colours are unique: the policies drawn by default, family by family
+    the oracle-parameter floor). Colours are unique: the policies drawn by default, family by family
     and best first, each take the first free colour of the family's palette (strong colours
     first) that differs by :data:`_DISTINCT` from the colours of the default-drawn policies (of
     any family but the floors, which are also told by their dashes and diamonds) on its tiers,
@@ -176,7 +176,7 @@ def _policy_styles(board: pd.DataFrame, shown_per_family: int = SHOWN_PER_FAMILY
         free = list(dict.fromkeys([*_PALETTES[f], *(_generated(f, k) for k in range(_GENERATED))]))
         extra = _GENERATED
         chosen: dict[str, str] = {}
-        # floors: the information floor (the control floor, one to three decades below everything, is a
+        # floors: the oracle-parameter floor (the control floor, one to three decades below everything, is a
         # click away: drawn, it would squeeze the policies into a corner of every log axis)
         shown = [p for p in members if (p != CONTROL_FLOOR if f == "floor" else place[p] < shown_per_family)]
         for p in [*shown, *(q for q in members if q not in shown)]:
@@ -747,12 +747,12 @@ def _columns_html(board: pd.DataFrame, gap: bool, has_base: bool, has_filtered: 
         if len(ref) and rows:
             g, tier, b, f, worst = min(rows)
             example = (f" On {html.escape(tier)} the best generic classical ({b:.4f} m) is only {g:.4f} m above the "
-                       f"information floor ({f:.4f} m), so a policy d metres worse than the best classical gets "
+                       f"oracle-parameter floor ({f:.4f} m), so a policy d metres worse than the best classical gets "
                        f"-d / {g:.4f}: the lowest value there is {worst:.2f}.")
         items.append(("gap closed [-]", "(best generic classical IQM - this IQM) / (best generic classical IQM - "
-                                        "information floor IQM): how much of the gap between the best generic "
+                                        "oracle-parameter floor IQM): how much of the gap between the best generic "
                                         "classical baseline (on a Leader tier: not the model-aware particle "
-                                        "filter, which knows the generator) and the information floor (the error "
+                                        "filter, which knows the generator) and the oracle-parameter floor (the error "
                                         "of an ideal estimate from the packets received, which no follower can "
                                         "beat) a policy closes. 0 is the best generic classical, 1 reaches the "
                                         "floor. It is measured in units of "
@@ -1022,7 +1022,7 @@ def write_report(bench_dir: str | Path = "results/benchmark", out: str | Path | 
     timed.update({p: df for p in labels if p not in timed and (df := episode(p, rerun=False)) is not None})
     timed = dict(sorted(timed.items(), key=lambda kv: styles[kv[0]].rank))
     est_label = next((p for p in runs if "est_x" in runs[p]), policy)
-    few = (f"the best {SHOWN_PER_FAMILY} of each family on each tier and the information floor (the control "
+    few = (f"the best {SHOWN_PER_FAMILY} of each family on each tier and the oracle-parameter floor (the control "
            f"floor lies one to three decades below and is in the legend)")
     click = ("click a legend entry to show or hide that policy, double-click it to show it alone; the buttons "
              "above the chart show all policies or the best few again")
