@@ -62,8 +62,8 @@ from numba import njit, prange
 
 from auv_follow_env import dynamics as dyn
 
-__all__ = ["DEFAULT_PARTICLES", "DEFAULT_CHILDREN", "episode_params", "packet_sigmas", "warmup_start",
-           "particle_floor_episode"]
+__all__ = ["DEFAULT_PARTICLES", "DEFAULT_CHILDREN", "PRIOR_SEED_BASE", "episode_params", "fix_ranges",
+           "packet_sigmas", "particle_floor_episode", "tier_prior", "warmup_start"]
 #: particles per episode by default (docs/benchmark.md, "Floors": the floor for N and 2N)
 DEFAULT_PARTICLES = 8192
 #: continuations of each particle weighted at a fix (:func:`particle_floor_episode`)
@@ -132,11 +132,18 @@ def _pos_loglik(ex, ey, sig, out_p, out_s):
     return m + math.log((1.0 - out_p) * math.exp(lg - m) + out_p * math.exp(lt - m))
 
 
+@njit(cache=True, inline="always")
+def _fix_sigma(p, i, sig, rng_m):
+    """The fix's position sigma for particle i: ``sig`` (known) or, with ``rng_m`` >= 0, the
+    particle's own fix_sigma_m + fix_sigma_per_m x ``rng_m`` (the range the fix shows)."""
+    return sig if rng_m < 0.0 else p[i, dyn.P_NS0] + p[i, dyn.P_NSK] * rng_m
+
+
 @njit(cache=True, parallel=True)
-def _loglik(proc, p, pose, z, sig, logw, pose_too):
+def _loglik(proc, p, pose, z, sig, rng_m, logw, pose_too):
     """Log-likelihood of fix ``z`` = (x, y, psi, u, r) for every particle (position sigma
-    ``sig``; heading, speed and turn-rate sigmas from the parameter row); without ``pose_too``
-    of the speed and turn rate only."""
+    :func:`_fix_sigma`; heading, speed and turn-rate sigmas from the parameter row); without
+    ``pose_too`` of the speed and turn rate only."""
     n = proc.shape[0]
     for i in prange(n):
         u, r = _held(p, proc, i)
@@ -147,7 +154,8 @@ def _loglik(proc, p, pose, z, sig, logw, pose_too):
         if pose_too:
             dpsi = z[2] - pose[i, 2]
             dpsi -= 2.0 * math.pi * math.floor((dpsi + math.pi) / (2.0 * math.pi))
-            lw += (_pos_loglik(z[0] - pose[i, 0], z[1] - pose[i, 1], sig, p[i, dyn.P_OUT_P], p[i, dyn.P_OUT_S])
+            s = _fix_sigma(p, i, sig, rng_m)
+            lw += (_pos_loglik(z[0] - pose[i, 0], z[1] - pose[i, 1], s, p[i, dyn.P_OUT_P], p[i, dyn.P_OUT_S])
                    - 0.5 * (dpsi / sp) ** 2)
         logw[i] = lw
 
@@ -388,7 +396,7 @@ def _systematic_n(logw, u0, n):
 
 
 @njit(cache=True, parallel=True)
-def _init_cloud(proc, rs, p, pose, start, z, sig, seed, burn):
+def _init_cloud(proc, rs, p, pose, start, z, sig, rng_m, seed, burn):
     """Particles at the first fix: the leader's hidden state as the generator has it there (the
     kernel's :func:`auv_follow_env.dynamics.leader_init` at the episode's start, then ``burn``
     leader steps: the warm-up before the fix) and the pose drawn from the fix's own likelihood (a
@@ -410,33 +418,57 @@ def _init_cloud(proc, rs, p, pose, start, z, sig, seed, burn):
             dyn.leader_step(proc, rs, p, i, p[i, dyn.P_LD_DT])
             if proc[i, dyn.R_LD_MODE] != mode:
                 start[i, 0] = np.nan
-        s = sig
+        s = _fix_sigma(p, i, sig, rng_m)
+        sg = s
         if p[i, dyn.P_OUT_P] > 0.0 and dyn.uniform01(rs, i) < p[i, dyn.P_OUT_P]:
             chi2 = 0.0
             for _ in range(int(_NU)):
                 g = dyn.normal01(rs, proc, i)
                 chi2 += g * g
-            s = math.sqrt(p[i, dyn.P_OUT_S] ** 2 + sig * sig) * math.sqrt(_NU / max(chi2, 1e-300))
+            s = math.sqrt(p[i, dyn.P_OUT_S] ** 2 + sg * sg) * math.sqrt(_NU / max(chi2, 1e-300))
         pose[i, 0] = z[0] + s * dyn.normal01(rs, proc, i)
         pose[i, 1] = z[1] + s * dyn.normal01(rs, proc, i)
         pose[i, 2] = z[2] + max(p[i, dyn.P_NPSI], 1e-6) * dyn.normal01(rs, proc, i)
 
 
 class _Cloud:
-    """The particles' state: kernel process rows, RNG states, target poses, and per particle the
+    """The particles' state: kernel process rows, RNG states, target poses, per particle the
     first mode's progress at the leader's start (NaN once it has left that mode) and the distance
-    travelled since the start while in it."""
+    travelled since the start while in it, and the kernel parameter rows (one per particle: the
+    episode's own row for the oracle-parameter floor, a prior draw each for the tier-prior floor;
+    static, resampled with the particle)."""
 
-    __slots__ = ("proc", "rs", "pose", "start")
+    __slots__ = ("proc", "rs", "pose", "start", "p")
 
-    def __init__(self, proc: np.ndarray, rs: np.ndarray, pose: np.ndarray, start: np.ndarray) -> None:
-        self.proc, self.rs, self.pose, self.start = proc, rs, pose, start
+    def __init__(self, proc: np.ndarray, rs: np.ndarray, pose: np.ndarray, start: np.ndarray,
+                 p: np.ndarray) -> None:
+        self.proc, self.rs, self.pose, self.start, self.p = proc, rs, pose, start, p
 
     def copy(self) -> _Cloud:
-        return _Cloud(self.proc.copy(), self.rs.copy(), self.pose.copy(), self.start.copy())
+        return _Cloud(self.proc.copy(), self.rs.copy(), self.pose.copy(), self.start.copy(), self.p)
 
     def take(self, idx: np.ndarray) -> _Cloud:
-        return _Cloud(self.proc[idx], self.rs[idx], self.pose[idx], self.start[idx])
+        return _Cloud(self.proc[idx], self.rs[idx], self.pose[idx], self.start[idx], self.p[idx])
+
+
+#: the parameter columns a tier-prior particle may move in (Liu and West's kernel): the leader's
+#: speeds, turn rates, mode durations and leg length, the fix noise level and the outlier share
+PRIOR_MOVE_COLUMNS = (*range(dyn.P_LD_UC, dyn.P_LD_RS + 1), dyn.P_NS0, dyn.P_OUT_P)
+
+
+def _liu_west(p: np.ndarray, cols: np.ndarray, lo: np.ndarray, hi: np.ndarray, a: float,
+              rng: np.random.Generator) -> np.ndarray:
+    """Liu and West's kernel move of the static parameters after resampling (equal weights):
+    each row shrinks toward the cloud's mean by ``a`` and gets Gaussian noise of variance
+    (1 - a^2) x the cloud's variance (mean and variance of the cloud kept), clipped to the prior's
+    range. It keeps the rows diverse where resampling would leave copies of a few (an
+    approximation of the static-parameter posterior; a = 1: no move)."""
+    x = p[:, cols]
+    m, v = x.mean(axis=0), x.var(axis=0)
+    new = a * x + (1.0 - a) * m + np.sqrt((1.0 - a * a) * v) * rng.standard_normal(x.shape)
+    out = p.copy()
+    out[:, cols] = np.clip(new, lo, hi)
+    return out
 
 
 def _reseed(rs: np.ndarray, rng: np.random.Generator) -> None:
@@ -447,15 +479,21 @@ def _reseed(rs: np.ndarray, rng: np.random.Generator) -> None:
 def particle_floor_episode(params: np.ndarray, meas: np.ndarray, arr: np.ndarray, z: np.ndarray, sig: np.ndarray,
                            ref: np.ndarray, p_d: Sequence[float], L: int, init_step: int, *,
                            particles: int = DEFAULT_PARTICLES, children: int = DEFAULT_CHILDREN,
-                           seed: int = 0) -> dict[str, np.ndarray]:
+                           seed: int = 0, fix_range: np.ndarray | None = None,
+                           shrink: float = 1.0) -> dict[str, np.ndarray]:
     """The particle floor of one Leader episode.
 
     Args:
-        params: the episode's kernel parameter row (NP,), as the env drew it.
+        params: the episode's kernel parameter row (NP,), as the env drew it (the
+            oracle-parameter floor), or (K, NP) rows drawn from the tier's own parameter law (the
+            tier-prior floor, :func:`tier_prior`): each particle then carries a row of its own,
+            drawn at the first fix (without replacement while K allows) and kept for the
+            episode (the parameters are static; resampling weights them by every fix's
+            likelihood, so the cloud's rows are draws of their posterior).
         meas, arr: (M,) measurement and arrival steps of the packets received
             (:func:`agents.benchmark.floors.extract_packets`).
         z: (M, 5) the received fixes in the world frame: x, y, psi, u, r.
-        sig: (M,) each fix's position-noise sigma [m].
+        sig: (M,) each fix's position-noise sigma [m] (unused with ``fix_range``).
         ref: (L + 1, 2) the true reference point at steps 0..L (for the realised error).
         p_d: the desired offset (d, l) in the target's body frame [m].
         L: the last step.
@@ -466,6 +504,12 @@ def particle_floor_episode(params: np.ndarray, meas: np.ndarray, arr: np.ndarray
             filter weights N x children candidates and resamples N: diversity where the fix is
             sharp, at the cost of the propagation between fixes).
         seed: the filter's own random seed.
+        fix_range: (M,) with per-particle parameters: the range [m] each fix shows (its position
+            minus the follower's own at its measurement); each particle's fix sigma is then its
+            own fix_sigma_m + fix_sigma_per_m x this range (a follower does not know the
+            episode's noise level). None: ``sig``.
+        shrink: with per-particle parameters, Liu and West's shrinkage a in (0, 1] of the move
+            that re-diversifies :data:`PRIOR_MOVE_COLUMNS` after each resampling (1: none).
 
     Returns:
         per step 0..L: ``median`` (L + 1, 2), ``expected`` and ``realised`` (L + 1,) [m] (the
@@ -479,11 +523,32 @@ def particle_floor_episode(params: np.ndarray, meas: np.ndarray, arr: np.ndarray
         raise ValueError(f"children={children!r} is invalid: must be an integer >= 1")
     n = int(particles)
     children = int(children)
-    p = np.ascontiguousarray(np.broadcast_to(np.asarray(params, dtype=np.float64), (n, dyn.NP)))
-    pc = np.ascontiguousarray(np.broadcast_to(p[:1], (n * children, dyn.NP)))
+    rows = np.asarray(params, dtype=np.float64)
+    if rows.ndim not in (1, 2) or rows.shape[-1] != dyn.NP or rows.size == 0:
+        raise ValueError(f"params has shape {rows.shape}: must be (NP,) = ({dyn.NP},) or (K, {dyn.NP})")
+    if rows.ndim == 2 and fix_range is None:
+        raise ValueError("params holds prior draws (K, NP) but fix_range is None: with per-particle parameters "
+                         "each particle's fix sigma needs the range each fix shows")
     rng = np.random.default_rng(seed)
+    if rows.ndim == 2:
+        k_rows = rows.shape[0]
+        pick = rng.permutation(k_rows)[:n * children] if k_rows >= n * children else rng.integers(
+            k_rows, size=n * children)
+        p_init = np.ascontiguousarray(rows[pick])
+        cols = np.array([c for c in PRIOR_MOVE_COLUMNS if rows[:, c].max() > rows[:, c].min()], dtype=np.int64)
+        lo, hi = rows[:, cols].min(axis=0), rows[:, cols].max(axis=0)
+        rng_m = np.asarray(fix_range, dtype=np.float64)
+        if rng_m.shape != (len(meas),):
+            raise ValueError(f"fix_range has shape {rng_m.shape}: must be ({len(meas)},), one per packet")
+    else:
+        p_init = np.ascontiguousarray(np.broadcast_to(rows, (n * children, dyn.NP)))
+        rng_m = np.full(len(meas), -1.0)
+        cols = np.zeros(0, dtype=np.int64)
+    if not isinstance(shrink, (int, float)) or isinstance(shrink, bool) or not 0.0 < float(shrink) <= 1.0:
+        raise ValueError(f"shrink={shrink!r} is invalid: must be a number in (0, 1] (1: no move)")
+    move = rows.ndim == 2 and float(shrink) < 1.0 and len(cols) > 0
     pdx, pdy = float(p_d[0]), float(p_d[1])
-    dt = float(p[0, dyn.P_LD_DT])
+    dt = float(p_init[0, dyn.P_LD_DT])
     median = np.full((L + 1, 2), np.nan)
     expected = np.full(L + 1, np.nan)
     ess = np.full(len(meas), np.nan)
@@ -499,14 +564,17 @@ def particle_floor_episode(params: np.ndarray, meas: np.ndarray, arr: np.ndarray
         (each with its own draws), weight them, resample N."""
         cloud = cloud.take(np.tile(np.arange(n), children))
         _reseed(cloud.rs, rng)
-        _advance(cloud.proc, cloud.rs, pc, cloud.pose, cloud.start, int(meas[j] - at))
+        _advance(cloud.proc, cloud.rs, cloud.p, cloud.pose, cloud.start, int(meas[j] - at))
         logw = np.empty(n * children)
-        _loglik(cloud.proc, pc, cloud.pose, np.ascontiguousarray(z[j]), float(sig[j]), logw, True)
+        _loglik(cloud.proc, cloud.p, cloud.pose, np.ascontiguousarray(z[j]), float(sig[j]), float(rng_m[j]), logw,
+                True)
         idx, e = _systematic_n(logw, float(rng.random()), n)
         ess[j] = e
         new = cloud.take(idx)
+        if move:
+            new.p = _liu_west(new.p, cols, lo, hi, shrink, rng)
         _reseed(new.rs, rng)
-        _rejuvenate(new.proc, new.rs, p, new.start, (int(meas[j]) - init_step) * dt)
+        _rejuvenate(new.proc, new.rs, new.p, new.start, (int(meas[j]) - init_step) * dt)
         return new
 
     k_start = int(min(0, arr.min())) if len(arr) else 0
@@ -514,9 +582,9 @@ def particle_floor_episode(params: np.ndarray, meas: np.ndarray, arr: np.ndarray
         # the estimate at step k uses the packets that arrived by step k - 1 (the information behind
         # the action that moved the follower to step k), as the v1 tiers' Kalman floor
         if pred is not None:
-            _advance(pred.proc, pred.rs, p, pred.pose, pred.start, 1)
+            _advance(pred.proc, pred.rs, pred.p, pred.pose, pred.start, 1)
             if k >= 0:
-                _medians(pred.pose, p, pdx, pdy, out)
+                _medians(pred.pose, pred.p, pdx, pdy, out)
                 median[k] = out[0], out[1]
                 expected[k] = out[2]
         changed = False
@@ -527,16 +595,20 @@ def particle_floor_episode(params: np.ndarray, meas: np.ndarray, arr: np.ndarray
             if not history:  # the first packet: the flat-prior start
                 nc = n * children
                 c = _Cloud(np.zeros((nc, dyn.NR)), np.zeros(nc, dtype=np.uint64), np.zeros((nc, 3)),
-                           np.full((nc, 2), np.nan))
-                _init_cloud(c.proc, c.rs, pc, c.pose, c.start, np.ascontiguousarray(z[j]), float(sig[j]),
-                            int(rng.integers(1, 2 ** 62)), max(0, m - init_step))
+                           np.full((nc, 2), np.nan), p_init)
+                _init_cloud(c.proc, c.rs, c.p, c.pose, c.start, np.ascontiguousarray(z[j]), float(sig[j]),
+                            float(rng_m[j]), int(rng.integers(1, 2 ** 62)), max(0, m - init_step))
                 logw = np.empty(nc)
                 # the pose was drawn from its likelihood (the proposal): weight by speed and turn rate only
-                _loglik(c.proc, pc, c.pose, np.ascontiguousarray(z[j]), float(sig[j]), logw, False)
+                # (a flat prior: the position likelihood integrates to 1 whatever the particle's sigma)
+                _loglik(c.proc, c.p, c.pose, np.ascontiguousarray(z[j]), float(sig[j]), float(rng_m[j]), logw,
+                        False)
                 idx, ess[j] = _systematic_n(logw, float(rng.random()), n)
                 c = c.take(idx)
+                if move:
+                    c.p = _liu_west(c.p, cols, lo, hi, shrink, rng)
                 _reseed(c.rs, rng)
-                _rejuvenate(c.proc, c.rs, p, c.start, (m - init_step) * dt)
+                _rejuvenate(c.proc, c.rs, c.p, c.start, (m - init_step) * dt)
                 history.append((m, j, c))
                 changed = True
                 continue
@@ -557,7 +629,7 @@ def particle_floor_episode(params: np.ndarray, meas: np.ndarray, arr: np.ndarray
             am = history[-1][0]
             pred = history[-1][2].copy()
             if k > am:
-                _advance(pred.proc, pred.rs, p, pred.pose, pred.start, k - am)
+                _advance(pred.proc, pred.rs, pred.p, pred.pose, pred.start, k - am)
     realised = np.hypot(median[:, 0] - ref[:L + 1, 0], median[:, 1] - ref[:L + 1, 1])
     return {"median": median, "expected": expected, "realised": realised, "ess": ess, "dropped": dropped}
 
@@ -573,6 +645,28 @@ def episode_params(env_id: str, seeds: Iterable[int], **overrides: Any) -> np.nd
         rows.append(env.unwrapped._sim.params[0].copy())
     env.close()
     return np.array(rows)
+
+
+#: the seeds of the tier-prior floor's parameter draws (:func:`tier_prior`): above every published
+#: test seed and every training seed, so the draws share no stream with an episode that is scored
+PRIOR_SEED_BASE = 500_000_000
+
+
+def tier_prior(env_id: str, draws: int, **overrides: Any) -> np.ndarray:
+    """``draws`` kernel parameter rows (draws, NP) from the tier's own parameter law: the env
+    reset at seeds PRIOR_SEED_BASE, PRIOR_SEED_BASE + 1, ... (what a follower who knows the tier,
+    its generator and its published ranges, but not the episode's draws, takes as its prior)."""
+    if not isinstance(draws, (int, np.integer)) or isinstance(draws, bool) or draws < 1:
+        raise ValueError(f"draws={draws!r} is invalid: must be an integer >= 1")
+    return episode_params(env_id, range(PRIOR_SEED_BASE, PRIOR_SEED_BASE + int(draws)), **overrides)
+
+
+def fix_ranges(recording: dict[str, Any], j: int, meas: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """The range each received fix shows: its position minus the follower's own at its
+    measurement (what a follower knows of the range that set the fix's noise)."""
+    mi = np.clip(meas, 0, None)
+    ps = recording["pose"][:, j]
+    return np.hypot(z[:, 0] - ps[mi, 0], z[:, 1] - ps[mi, 1])
 
 
 def packet_sigmas(recording: dict[str, Any], j: int, meas: np.ndarray, *, nominal: bool = False) -> np.ndarray:

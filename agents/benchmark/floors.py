@@ -53,6 +53,7 @@ from agents.benchmark.bayes_floor import (
     DEFAULT_CHILDREN,
     DEFAULT_PARTICLES,
     episode_params,
+    fix_ranges,
     packet_sigmas,
     particle_floor_episode,
     warmup_start,
@@ -672,9 +673,13 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
 
 def leader_bayes_floor(recording: dict[str, Any], params: np.ndarray, *, particles: int = DEFAULT_PARTICLES,
                 children: int = DEFAULT_CHILDREN,
-                nominal_sigma: bool = False, progress: bool = False, seed: int = 0) -> pd.DataFrame:
+                nominal_sigma: bool = False, progress: bool = False, seed: int = 0,
+                prior: np.ndarray | None = None, shrink: float = 1.0) -> pd.DataFrame:
     """The particle floor (:mod:`agents.benchmark.bayes_floor`) of every episode of a recording
-    (:func:`record_episodes`), one row per seed: ``expected_steady_mean``
+    (:func:`record_episodes`): with ``params`` (S, NP), each episode's own drawn parameters (the
+    oracle-parameter floor); with ``prior`` (K, NP) instead (``params`` then unused), the
+    tier-prior floor: each particle a draw of the tier's parameter law, each fix's noise from the
+    particle's own level and the range the fix shows. One row per seed: ``expected_steady_mean``
     / ``expected_full_mean`` (the floor), ``realised_steady_mean`` / ``realised_full_mean``,
     ``min_ess_share`` / ``median_ess_share`` (the effective sample size at the fixes over N),
     ``packets``, ``dropped``, ``steady_steps_without_packet``."""
@@ -687,9 +692,11 @@ def leader_bayes_floor(recording: dict[str, Any], params: np.ndarray, *, particl
         L = int(recording["length"][j])
         pk = extract_packets(recording["obs"][:L + 1, j], recording["pose"][:L + 1, j], dt)
         sig = packet_sigmas(recording, j, pk["meas"], nominal=nominal_sigma)
-        res = particle_floor_episode(params[j], pk["meas"], pk["arr"], pk["z"], sig, recording["ref"][:, j, :2],
+        rows_j, rng_j = ((params[j], None) if prior is None else
+                         (prior, fix_ranges(recording, j, pk["meas"], pk["z"])))
+        res = particle_floor_episode(rows_j, pk["meas"], pk["arr"], pk["z"], sig, recording["ref"][:, j, :2],
                                      spec.p_d, L, warmup_start(recording, j), particles=particles,
-                                     children=children, seed=seed + j)
+                                     children=children, seed=seed + j, fix_range=rng_j, shrink=shrink)
         times = dt * np.arange(1, L + 1)
         steady = times >= spec.steady_start_s - 1e-9
         ex, re = res["expected"][1:], res["realised"][1:]
