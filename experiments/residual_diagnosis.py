@@ -1,7 +1,7 @@
 """Why the PPO residual on PROPOSED_IMM_DOB learns nothing on Leader-Hard: what moves, what the
 residual does, and whether its observation holds what it would need.
 
-    python -m experiments.residual_diagnosis          # about 3 minutes; results/residual_diagnosis.md
+    python -m experiments.residual_diagnosis          # about 30 seconds; results/residual_diagnosis.md
 
 The committed runs (results/benchmark/runs/bppo7-LeaderHard-residual-IMMDOB-s0..s2: residual on
 PROPOSED_IMM_DOB, scale 0.1, the estimator block in the observation, 10 M steps) are read and

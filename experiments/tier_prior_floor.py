@@ -1,4 +1,4 @@
-"""The Bayes floor of a follower who knows the tier (issue 50's floor (a)): does the tier-prior
+"""The Bayes floor of a follower who knows the tier (floor (a) of docs/floors.md): does the tier-prior
 particle floor converge, and does it lie below every causal estimator?
 
     python -m experiments.tier_prior_floor              # about 15 minutes; results/tier_prior_floor.md

@@ -56,6 +56,7 @@ from agents.benchmark.bayes_floor import (
     fix_ranges,
     packet_sigmas,
     particle_floor_episode,
+    tier_prior,
     warmup_start,
 )
 from auv_follow_env.layout import OBS_INDEX_V1
@@ -65,7 +66,8 @@ from auv_follow_env.perfect_link import perfect_link_observation
 __all__ = ["CONTROL_FLOOR", "INFORMATION_FLOOR", "LEGACY_LABELS", "REFERENCE_KIND", "DEFAULT_FOLLOWER", "ControlFloor",
            "perfect_link_episodes", "control_floor",
            "record_episodes", "extract_packets", "mean_norm_2d", "delayed_kalman", "information_floor",
-           "floor_episodes", "add_gap_closed", "leader_floor", "leader_bayes_floor", "LEADER_FOLLOWER"]
+           "floor_episodes", "add_gap_closed", "leader_floor", "TIER_PRIOR_FLOOR",
+           "FLOOR_KNOWS", "leader_bayes_floor", "LEADER_FOLLOWER"]
 
 #: leaderboard labels of the two reference rows
 CONTROL_FLOOR = "control floor"
@@ -723,13 +725,18 @@ LEADER_FOLLOWER = "PROPOSED_IMM_DOB"
 
 def _cache_key(rec: dict[str, Any], params: np.ndarray, particles: int, children: int, seed: int) -> str:
     import hashlib
+    import inspect
 
     from agents.benchmark import bayes_floor
     from auv_follow_env import dynamics
 
     h = hashlib.sha256()
-    for mod in (Path(__file__), Path(bayes_floor.__file__), Path(dynamics.__file__)):
+    for mod in (Path(bayes_floor.__file__), Path(dynamics.__file__)):
         h.update(mod.read_bytes())
+    # of this module, the code a floor row depends on beyond the recording (hashed below): edits
+    # elsewhere here (the leaderboard's use of the rows) keep the cached rows
+    for fn in (leader_bayes_floor, extract_packets, _cache_key):
+        h.update(inspect.getsource(fn).encode())
     for name in ("obs", "target", "pose", "ref", "length"):
         h.update(np.ascontiguousarray(rec[name]).tobytes())
     h.update(np.ascontiguousarray(params).tobytes())
@@ -737,28 +744,57 @@ def _cache_key(rec: dict[str, Any], params: np.ndarray, particles: int, children
     return h.hexdigest()[:20]
 
 
-def leader_floor(tier: str, seeds: Iterable[int] | None = None, *, particles: int = DEFAULT_PARTICLES,
+#: the floor a follower who knows the tier (its generator and published ranges, not the
+#: episode's draws) could reach: :func:`leader_floor` with ``knows="tier"``
+TIER_PRIOR_FLOOR = "tier-prior floor"
+#: its settings: particles, Liu-West shrinkage, prior draws per particle (experiments/tier_prior_floor.py:
+#: on Leader-Medium's check seeds 16,384 and 32,768 particles agree within 2 %)
+TIER_PRIOR_PARTICLES, TIER_PRIOR_SHRINK, TIER_PRIOR_DRAWS = 16384, 0.98, 4
+#: what each floor knows -> its row name
+FLOOR_KNOWS = {"episode": INFORMATION_FLOOR, "tier": TIER_PRIOR_FLOOR}
+
+
+def leader_floor(tier: str, seeds: Iterable[int] | None = None, *, particles: int | None = None,
                  children: int = DEFAULT_CHILDREN, follower: str = LEADER_FOLLOWER, seed: int = 0,
-                 cache_dir: str | Path | None = None, progress: bool = False) -> pd.DataFrame:
-    """The oracle-parameter floor of a Leader tier, per episode (:func:`leader_bayes_floor` on the episodes
-    ``follower`` plays; None seeds: the tier's published test seeds). With ``cache_dir`` the
-    rows are stored there, keyed by this module's and the kernel's code, the recording, the
-    episode parameters and the settings, and reused while all of them are unchanged."""
+                 cache_dir: str | Path | None = None, progress: bool = False, knows: str = "episode",
+                 shrink: float | None = None) -> pd.DataFrame:
+    """A particle floor of a Leader tier, per episode (:func:`leader_bayes_floor` on the episodes
+    ``follower`` plays; None seeds: the tier's published test seeds). ``knows="episode"``: the
+    oracle-parameter floor (each episode's drawn parameters; default particles
+    DEFAULT_PARTICLES, no move); ``"tier"``: the tier-prior floor (TIER_PRIOR_DRAWS x particles
+    draws of the tier's parameter law as the prior; defaults TIER_PRIOR_PARTICLES and
+    TIER_PRIOR_SHRINK). With ``cache_dir`` the rows are stored there, keyed by the floor's code
+    (agents/benchmark/bayes_floor.py, the dynamics, and this module's :func:`leader_bayes_floor`
+    and :func:`extract_packets`), the recording, the parameters and the settings, and reused
+    while all of them are unchanged."""
     from auv_follow_env.tiers import LEADER_TIERS
 
+    if knows not in FLOOR_KNOWS:
+        raise ValueError(f"knows={knows!r} is invalid: must be one of {list(FLOOR_KNOWS)}")
+    if particles is None:
+        particles = DEFAULT_PARTICLES if knows == "episode" else TIER_PRIOR_PARTICLES
+    if shrink is None:
+        shrink = 1.0 if knows == "episode" else TIER_PRIOR_SHRINK
 
     if not isinstance(tier, str) or tier not in LEADER_TIERS:
         raise ValueError(f"tier={tier!r} is invalid: the particle floor is for the Leader tiers {list(LEADER_TIERS)} "
                          "(the v1 tiers' floor is the Kalman floor, agents.benchmark.floors.information_floor)")
     seeds = _check_seeds(seeds, tier)
     rec = record_episodes(tier, seeds, follower, progress=progress)
-    params = episode_params(f"AUVFollow-{tier}-v1", seeds)
+    env_id = f"AUVFollow-{tier}-v1"
+    params = episode_params(env_id, seeds)
+    draws = TIER_PRIOR_DRAWS * int(particles)
     path = None
     if cache_dir is not None:
-        path = Path(cache_dir) / f"leader-floor-{tier}-{_cache_key(rec, params, particles, children, seed)}.parquet"
+        key = _cache_key(rec, params, particles, children, seed)
+        if knows == "tier":  # the prior is a function of the env's code (in the key), the id and the draws
+            key = f"tier-{key}-a{float(shrink):g}-d{draws}"
+        path = Path(cache_dir) / f"leader-floor-{tier}-{key}.parquet"
         if path.is_file():
             return pd.read_parquet(path)
-    df = leader_bayes_floor(rec, params, particles=particles, children=children, progress=progress, seed=seed)
+    prior = tier_prior(env_id, draws) if knows == "tier" else None
+    df = leader_bayes_floor(rec, params, particles=particles, children=children, progress=progress, seed=seed,
+                            prior=prior, shrink=shrink)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
