@@ -415,8 +415,10 @@ def _add_benchmark_commands(sub: Any) -> None:
                    help="directory of per-run episode caches, reused while the episode code equals git HEAD "
                         "(default: no cache)")
     b.add_argument("--floors", action="store_true",
-                   help="add each v1 tier's control and information floors (a Leader tier's control floor) as "
-                        "reference rows and a 'gap closed' column (agents/benchmark/floors.py; a minute per tier)")
+                   help="add each tier's floors as reference rows and 'gap closed' columns (agents/benchmark/"
+                        "floors.py, docs/floors.md): a v1 tier's control and Kalman floors (a minute per tier), a "
+                        "Leader tier's control and oracle-parameter floors (a few minutes) and, on Leader-Easy and "
+                        "Leader-Medium, the tier-prior floor (about 25 minutes per tier; --cache keeps it)")
     b.add_argument("--address", default=None,
                    help="run the episodes on the Ray cluster at this address (host:port of its head, or 'local' "
                         "for a new Ray instance on this machine) as (tier, policy, seed chunk) cells; every node "
@@ -433,6 +435,14 @@ def _add_benchmark_commands(sub: Any) -> None:
                                     "bootstrap settings: no episode runs. For a new statistic on the stored episodes; "
                                     "the provenance keeps the episodes' own and records the rebuild.")
     lb.add_argument("--bench", required=True, help="directory written by `auv-follow benchmark`")
+    lb.add_argument("--tier-prior-floor", nargs="+", default=[], metavar="TIER",
+                    help="first compute the tier-prior floor of these Leader tiers of the folder (a follower who "
+                         "knows the tier's published ranges, not the episode's draws; docs/floors.md) on the "
+                         "folder's seeds and add it as reference rows: about 25 minutes per tier of 100 seeds on "
+                         "2 cores")
+    lb.add_argument("--cache", dest="cache_dir", default=None,
+                    help="directory of the particle floors' cache, reused while the floor's code and inputs are "
+                         "unchanged (default: no cache)")
     lb.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     lb.set_defaults(handler=_cmd_leaderboard)
 
@@ -511,9 +521,17 @@ def _cmd_leaderboard(args: argparse.Namespace) -> None:
     from agents.benchmark.run import rebuild_leaderboard
 
     _check_writable(Path(args.bench), "--bench", want_dir=True)
-    res = rebuild_leaderboard(args.bench, progress=args.progress,
-                              command="auv-follow " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["leaderboard"]
-                              else None)
+    if args.cache_dir is not None:
+        _check_writable(Path(args.cache_dir), "--cache", want_dir=True)
+    try:
+        res = rebuild_leaderboard(args.bench, progress=args.progress, tier_prior_floor=args.tier_prior_floor,
+                                  cache_dir=args.cache_dir,
+                                  command="auv-follow " + shlex.join(sys.argv[1:])
+                                  if sys.argv[1:2] == ["leaderboard"] else None)
+    except ValueError as exc:
+        if "tier_prior_floor" not in str(exc):
+            raise
+        raise _Refused("--tier-prior-floor", str(exc).replace("tier_prior_floor=", "")) from None
     print(benchmark_summary(res.leaderboard, res.files))
 
 

@@ -7,6 +7,7 @@ is a point (every draw is the episode's own row)."""
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from agents.benchmark import bayes_floor as bf
@@ -97,3 +98,63 @@ def test_a_point_prior_gives_the_oracle_parameter_floor():
             ref, other = b0[col].iloc[0], b1[col].iloc[0]
             tol = max(3 * abs(ref - other), 0.05 * ref)
             assert a[col].iloc[0] == pytest.approx(ref, abs=tol), (seed, col, a[col].iloc[0], ref, other)
+
+
+def _board(tier_prior_iqm: float | None) -> pd.DataFrame:
+
+    policies = ["PROPOSED_PF_DOB", "PROPOSED_IMM_DOB", "L", floors.INFORMATION_FLOOR]
+    kinds = ["classical", "classical", "learned", "reference"]
+    iqm = [0.45, 0.50, 0.40, 0.10]
+    if tier_prior_iqm is not None:
+        policies.append(floors.TIER_PRIOR_FLOOR)
+        kinds.append("reference")
+        iqm.append(tier_prior_iqm)
+    return pd.DataFrame({"tier": "Leader-Hard", "policy": policies, "kind": kinds, "true_steady_mean_iqm": iqm,
+                         "best_classical": "PROPOSED_PF_DOB"})
+
+
+def test_gap_closed_is_measured_against_the_tier_prior_floor_where_there_is_one():
+    """Best generic classical 0.50 m (the model-aware 0.45 does not count), tier-prior floor
+    0.30 m, oracle-parameter floor 0.10 m: a learned row at 0.40 m closes (0.50 - 0.40) /
+    (0.50 - 0.30) = 0.5 of the reachable gap and 0.10 / 0.40 = 0.25 of the oracle one."""
+    out = floors.add_gap_closed(_board(0.30)).set_index("policy")
+    assert out.loc["L", "gap_closed"] == pytest.approx(0.5)
+    assert out.loc["L", "gap_closed_oracle"] == pytest.approx(0.25)
+    assert out.loc["PROPOSED_PF_DOB", "gap_closed"] == pytest.approx(0.25)  # 0.05 / 0.20
+    assert out.loc["PROPOSED_IMM_DOB", "gap_closed"] == 0.0
+    assert (out["gap_floor"] == floors.TIER_PRIOR_FLOOR).all()
+    assert np.isnan(out.loc[floors.TIER_PRIOR_FLOOR, "gap_closed"])  # reference rows get none
+    # without a tier-prior row, or with one no lower than the best generic classical (then it
+    # is no floor to close a gap to), the oracle-parameter floor is the one
+    for board in (_board(None), _board(0.55)):
+        out = floors.add_gap_closed(board).set_index("policy")
+        assert out.loc["L", "gap_closed"] == pytest.approx(0.25)
+        assert (out["gap_floor"] == floors.INFORMATION_FLOOR).all()
+
+
+def test_the_tier_prior_floor_is_added_to_a_benchmark_folder(tmp_path, monkeypatch):
+    """`auv-follow leaderboard --tier-prior-floor` adds the floor's rows (the same numbers as
+    leader_floor(knows='tier') on those seeds), keeps every other episode row, and names the
+    floor in the leaderboard's gap-closed column; a tier the folder lacks is refused by name."""
+    from agents.benchmark.run import benchmark, rebuild_leaderboard
+
+    monkeypatch.setattr(floors, "TIER_PRIOR_PARTICLES", 256)  # a quick floor: the mechanics, not the value
+    seeds = [1, 2]
+    out = tmp_path / "bench"
+    res = benchmark(["PROPOSED_KF_DOB", "PROPOSED_IMM_DOB"], tiers=["Leader-Easy"], seeds=seeds, out_dir=out,
+                    n_resamples=200, progress=False)
+    before = res.episodes
+    with pytest.raises(ValueError, match="'Leader-Hard' is not one of the folder's Leader tiers"):
+        rebuild_leaderboard(out, tier_prior_floor=["Leader-Hard"], progress=False)
+    new = rebuild_leaderboard(out, tier_prior_floor=["Leader-Easy"], cache_dir=tmp_path / "cache", progress=False)
+    rows = new.episodes[new.episodes["policy"] == floors.TIER_PRIOR_FLOOR].sort_values("seed")
+    direct = floors.leader_floor("Leader-Easy", seeds, knows="tier", cache_dir=tmp_path / "cache")
+    np.testing.assert_array_equal(rows["true_steady_mean"].to_numpy(), direct["expected_steady_mean"].to_numpy())
+    assert (rows["kind"] == floors.REFERENCE_KIND).all() and rows["cond_fix_sigma_m"].notna().all()
+    kept = new.episodes[new.episodes["policy"] != floors.TIER_PRIOR_FLOOR].reset_index(drop=True)
+    assert kept.equals(before.reset_index(drop=True)[kept.columns])
+    # again: the rows are replaced, not doubled
+    again = rebuild_leaderboard(out, tier_prior_floor=["Leader-Easy"], cache_dir=tmp_path / "cache", progress=False)
+    assert (again.episodes["policy"] == floors.TIER_PRIOR_FLOOR).sum() == len(seeds)
+    assert floors.TIER_PRIOR_FLOOR in set(again.leaderboard["policy"])
+    assert "Leader-Easy" in again.provenance["rebuilt"]["added_rows"]

@@ -29,9 +29,13 @@ leaderboard's policies:
   Kalman filter with the true parameters (linearised about its own estimate) on the same
   packets - what an estimator with perfect knowledge of the model actually achieves.
 
-:func:`floor_episodes` returns both floors as rows of the benchmark's episodes table with
-``kind = "reference"`` (not competitors), and :func:`add_gap_closed` adds the leaderboard
-column ``gap_closed`` = (best classical - method) / (best classical - oracle-parameter floor).
+:func:`floor_episodes` returns the floors as rows of the benchmark's episodes table with
+``kind = "reference"`` (not competitors): on a Leader tier the oracle-parameter floor and, where
+it converged, the tier-prior floor (:func:`leader_floor` with ``knows="tier"``: the floor of a
+follower who knows the tier's generator and published ranges, not the episode's draws).
+:func:`add_gap_closed` adds the leaderboard column ``gap_closed`` = (best classical - method) /
+(best classical - floor), against the tier-prior floor where there is one, and
+``gap_closed_oracle`` against the oracle-parameter floor.
 """
 
 from __future__ import annotations
@@ -66,8 +70,8 @@ from auv_follow_env.perfect_link import perfect_link_observation
 __all__ = ["CONTROL_FLOOR", "INFORMATION_FLOOR", "LEGACY_LABELS", "REFERENCE_KIND", "DEFAULT_FOLLOWER", "ControlFloor",
            "perfect_link_episodes", "control_floor",
            "record_episodes", "extract_packets", "mean_norm_2d", "delayed_kalman", "information_floor",
-           "floor_episodes", "add_gap_closed", "leader_floor", "TIER_PRIOR_FLOOR",
-           "FLOOR_KNOWS", "leader_bayes_floor", "LEADER_FOLLOWER"]
+           "floor_episodes", "particle_floor_rows", "add_gap_closed", "leader_floor", "TIER_PRIOR_FLOOR",
+           "TIER_PRIOR_TIERS", "FLOOR_KNOWS", "leader_bayes_floor", "LEADER_FOLLOWER"]
 
 #: leaderboard labels of the two reference rows
 CONTROL_FLOOR = "control floor"
@@ -624,20 +628,17 @@ def information_floor(tier: str, seeds: Iterable[int] | None = None, follower: s
 
 def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers: Sequence[str] | None = None,
                    follower: str = DEFAULT_FOLLOWER, progress: bool = False,
-                   cache_dir: str | Path | None = None) -> pd.DataFrame:
-    """Both floors of a tier as rows of the benchmark's episodes table (``kind`` =
+                   cache_dir: str | Path | None = None, tier_prior: bool = True) -> pd.DataFrame:
+    """The floors of a tier as rows of the benchmark's episodes table (``kind`` =
     :data:`REFERENCE_KIND`; policy :data:`CONTROL_FLOOR` with ``run`` = the best controller,
     and :data:`INFORMATION_FLOOR` with ``run`` = ``"kalman"`` on a v1 tier, the particle filter
     of :mod:`agents.benchmark.bayes_floor` on a Leader tier, its rows cached in ``cache_dir``
-    if given), with the drawn condition
-    (``cond_*``) and the loss threshold like :func:`agents.benchmark.evaluate_tier`'s rows.
-    The oracle-parameter floor's ``true_*_mean`` are the expected errors; its other metrics are NaN."""
-    from agents.benchmark.protocol import _condition_columns
-    from agents.benchmark.protocol import _max_distance as bench_max_distance
-
+    if given; on the Leader tiers of :data:`TIER_PRIOR_TIERS` with ``tier_prior`` also
+    :data:`TIER_PRIOR_FLOOR`, about 25 minutes per tier of 100 seeds on 2 cores), with the drawn
+    condition (``cond_*``) and the loss threshold like :func:`agents.benchmark.evaluate_tier`'s rows.
+    The particle floors' ``true_*_mean`` are the expected errors; their other metrics are NaN."""
     tier = _check_tier(tier)
     seeds = _check_seeds(seeds, tier)
-    env_id = f"AUVFollow-{tier}-v1"
     cf = control_floor(tier, seeds, controllers, progress=progress)
     ctrl = cf.scores.copy()
     ctrl["policy"] = CONTROL_FLOOR
@@ -647,14 +648,49 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
 
     if tier in TIERS:
         inf = information_floor(tier, seeds, follower, progress=progress)
-        run = "kalman"
+        frames.append(_expected_rows(INFORMATION_FLOOR, "kalman", inf))
     else:  # a Leader tier: the particle filter under the true generator (agents/benchmark/bayes_floor.py)
-        inf = leader_floor(tier, seeds, cache_dir=None if cache_dir is None else str(cache_dir), progress=progress)
+        frames += [_particle_floor_frame(tier, seeds, knows, cache_dir, progress)
+                   for knows in (("episode", "tier") if tier_prior and tier in TIER_PRIOR_TIERS else ("episode",))]
+    return _reference_table(tier, seeds, frames)
+
+
+def particle_floor_rows(tier: str, seeds: Iterable[int] | None = None, knows: str = "episode", *,
+                        cache_dir: str | Path | None = None, progress: bool = False) -> pd.DataFrame:
+    """One particle floor of a Leader tier (:func:`leader_floor` with its default settings; None
+    seeds: the published test seeds) as reference rows of the benchmark's episodes table, like
+    :func:`floor_episodes`'s: policy ``FLOOR_KNOWS[knows]``."""
+    if knows not in FLOOR_KNOWS:
+        raise ValueError(f"knows={knows!r} is invalid: must be one of {list(FLOOR_KNOWS)}")
+    tier = _check_tier(tier)
+    seeds = _check_seeds(seeds, tier)
+    return _reference_table(tier, seeds, [_particle_floor_frame(tier, seeds, knows, cache_dir, progress)])
+
+
+def _particle_floor_frame(tier: str, seeds: Sequence[int], knows: str, cache_dir: str | Path | None,
+                          progress: bool) -> pd.DataFrame:
+    df = leader_floor(tier, seeds, knows=knows, cache_dir=None if cache_dir is None else str(cache_dir),
+                      progress=progress)
+    if knows == "tier":
+        run = (f"particle filter, {TIER_PRIOR_PARTICLES} particles, the tier's parameter law as prior, "
+               f"Liu-West a = {TIER_PRIOR_SHRINK:g}")
+    else:
         run = f"particle filter, {DEFAULT_PARTICLES} particles"
-    frames.append(pd.DataFrame({"policy": INFORMATION_FLOOR, "run": run, "seed": inf["seed"],
-                                "steps": inf["steps"], "terminated": False, "return": np.nan,
-                                "true_steady_mean": inf["expected_steady_mean"],
-                                "true_full_mean": inf["expected_full_mean"]}))
+    return _expected_rows(FLOOR_KNOWS[knows], run, df)
+
+
+def _expected_rows(policy: str, run: str, inf: pd.DataFrame) -> pd.DataFrame:
+    return pd.DataFrame({"policy": policy, "run": run, "seed": inf["seed"], "steps": inf["steps"],
+                         "terminated": False, "return": np.nan, "true_steady_mean": inf["expected_steady_mean"],
+                         "true_full_mean": inf["expected_full_mean"]})
+
+
+def _reference_table(tier: str, seeds: Sequence[int], frames: list[pd.DataFrame]) -> pd.DataFrame:
+    """Reference rows with the columns of the benchmark's episodes table."""
+    from agents.benchmark.protocol import _condition_columns
+    from agents.benchmark.protocol import _max_distance as bench_max_distance
+
+    env_id = f"AUVFollow-{tier}-v1"
     df = pd.concat(frames, ignore_index=True)
     for m in ("full_mean", "full_rmse", "full_max", "steady_mean", "steady_rmse", "steady_max"):
         if f"true_{m}" not in df:
@@ -668,7 +704,7 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
     df["scenario"], df["disturbance"] = spec.scenario, spec.disturbance
     df["kind"] = REFERENCE_KIND
     df["fail_error_m"] = bench_max_distance(env_id)
-    return df.merge(_condition_columns(env_id, seeds, spec), on="seed", how="left")
+    return df.merge(_condition_columns(env_id, list(seeds), spec), on="seed", how="left")
 
 
 # --- the Leader tiers' oracle-parameter floor (agents/benchmark/bayes_floor.py) -------------------
@@ -752,6 +788,10 @@ TIER_PRIOR_FLOOR = "tier-prior floor"
 TIER_PRIOR_PARTICLES, TIER_PRIOR_SHRINK, TIER_PRIOR_DRAWS = 16384, 0.98, 4
 #: what each floor knows -> its row name
 FLOOR_KNOWS = {"episode": INFORMATION_FLOOR, "tier": TIER_PRIOR_FLOOR}
+#: the Leader tiers whose benchmark floors include the tier-prior floor: those where it converged
+#: (doubling the particles changes its IQM by < 2 % on the check seeds, experiments/tier_prior_floor.py)
+#: and lies below every causal estimator; on Leader-Hard it does neither (docs/floors.md)
+TIER_PRIOR_TIERS = ("Leader-Easy", "Leader-Medium")
 
 
 def leader_floor(tier: str, seeds: Iterable[int] | None = None, *, particles: int | None = None,
@@ -841,19 +881,40 @@ def estimator_error(recording: dict[str, Any], config: Any = None) -> np.ndarray
 
 
 def add_gap_closed(board: pd.DataFrame, metric: str = "true_steady_mean") -> pd.DataFrame:
-    """Add ``gap_closed`` to a leaderboard: per tier with an :data:`INFORMATION_FLOOR` row and
-    a classical baseline, (best generic classical IQM - method IQM) / (best generic classical
-    IQM - oracle-parameter floor IQM): 0 for the best generic classical, 1 for a method at the
-    oracle-parameter floor, negative for one worse; NaN for reference rows and tiers without a floor.
+    """Add ``gap_closed``, ``gap_floor`` and ``gap_closed_oracle`` to a leaderboard. Per tier with
+    a floor row and a classical baseline, gap closed = (best generic classical IQM - method IQM)
+    / (best generic classical IQM - floor IQM): 0 for the best generic classical, 1 for a method
+    at the floor, negative for one worse; NaN for reference rows and tiers without a floor.
+    ``gap_closed`` is measured against the floor a follower could reach where the tier has one
+    (:data:`TIER_PRIOR_FLOOR`), else against the :data:`INFORMATION_FLOOR`; ``gap_floor`` names
+    it; ``gap_closed_oracle`` is always against the oracle-parameter floor.
     *Generic*: not one of ``controllers.MODEL_AWARE_CONTROLLERS`` (which know a Leader tier's
     generator); on the v1 tiers that is every classical row, the best classical."""
     from controllers import MODEL_AWARE_CONTROLLERS
 
     out = board.copy()
     out["gap_closed"] = np.nan
+    out["gap_closed_oracle"] = np.nan
+    out["gap_floor"] = ""
     col = f"{metric}_iqm"
     if col not in out or "kind" not in out:
         return out
+    for _, idx in out.groupby("tier", sort=False).groups.items():
+        sub = out.loc[idx]
+        generic = sub[(sub["kind"] == "classical") & ~sub["policy"].isin(list(MODEL_AWARE_CONTROLLERS))]
+        if generic.empty:
+            continue
+        b = float(generic[col].min())
+        comp = sub["kind"] != REFERENCE_KIND
+        for name, target in ((INFORMATION_FLOOR, "gap_closed_oracle"), (INFORMATION_FLOOR, "gap_closed"),
+                             (TIER_PRIOR_FLOOR, "gap_closed")):
+            floor = sub[(sub["policy"] == name) & (sub["kind"] == REFERENCE_KIND)]
+            if floor.empty or not b > float(floor[col].iloc[0]):
+                continue
+            out.loc[sub.index[comp], target] = (b - sub.loc[comp, col]) / (b - float(floor[col].iloc[0]))
+            if target == "gap_closed":
+                out.loc[sub.index, "gap_floor"] = name
+    return out
     for _, idx in out.groupby("tier", sort=False).groups.items():
         sub = out.loc[idx]
         floor = sub[(sub["policy"] == INFORMATION_FLOOR) & (sub["kind"] == REFERENCE_KIND)]

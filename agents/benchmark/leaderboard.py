@@ -322,6 +322,8 @@ def _robust_text(r: Mapping[str, Any], prefix: str) -> str:
 def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = None,
                          metrics: Sequence[str] = LEADERBOARD_METRICS) -> str:
     """The leaderboard as Markdown: one table per tier (errors in m, 95 % CIs in brackets)."""
+    from agents.benchmark.floors import INFORMATION_FLOOR
+
     lines = ["# Leaderboard", "",
              "True-reference tracking error [m] (eq. (65)), steady state t >= 10 s and full run: IQM and mean "
              "over the tier's test episodes with 95 % stratified-bootstrap CIs (strata: training runs); "
@@ -336,7 +338,10 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
              "and the base action, estimator = also a target filter's estimate), and, where that filter is one "
              "its base lacks, against the same law on that filter; a terminated episode scores the loss "
              "threshold" + ("; gap closed = (best generic classical IQM - this IQM) / (best generic classical IQM - "
-                            "oracle-parameter floor IQM), generic: not a model-aware controller (which knows a Leader "
+                            "floor IQM), against the floor named in the column's head: the tier-prior floor (a "
+                            "follower who knows the tier's published ranges, not the episode's draws) where it "
+                            "converged, else the oracle-parameter floor (knows each episode's drawn parameters: a "
+                            "bound no follower reaches); generic: not a model-aware controller (which knows a Leader "
                             "tier's generator)" if "gap_closed" in board and board["gap_closed"].notna().any()
                             else "") + ".", ""]
     m0 = metrics[0]
@@ -356,7 +361,10 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
         has_filtered = "filtered_law" in sub and (sub["filtered_law"].fillna("") != "").any()
         head += ["paired diff vs its base's law on its observation's filter [m]"] if has_filtered else []
         gap = "gap_closed" in sub and sub["gap_closed"].notna().any()  # floors present (agents/benchmark/floors.py)
-        head += ["gap closed"] if gap else []
+        gap_floor = str(sub["gap_floor"].iloc[0]) if gap and "gap_floor" in sub else ""
+        both = gap and bool(gap_floor) and gap_floor != INFORMATION_FLOOR and sub["gap_closed_oracle"].notna().any()
+        head += [f"gap closed ({gap_floor})" if gap_floor else "gap closed"] if gap else []
+        head += [f"gap closed ({INFORMATION_FLOOR})"] if both else []
         lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for _, r in sub.sort_values(f"{m0}_iqm").iterrows():
             cells = [f"**{_md(r['policy'])}**" if r["policy"] == best else _md(r["policy"]), _md(r["kind"]),
@@ -385,6 +393,8 @@ def leaderboard_markdown(board: pd.DataFrame, prov: Mapping[str, Any] | None = N
                 cells.append(f"{ci} ({_md(r['filtered_law'])})" if r.get("filtered_law") else "-")
             if gap:
                 cells.append("-" if not np.isfinite(r["gap_closed"]) else f"{r['gap_closed']:.2f}")
+            if both:
+                cells.append("-" if not np.isfinite(r["gap_closed_oracle"]) else f"{r['gap_closed_oracle']:.2f}")
             lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
     if prov is not None:

@@ -738,24 +738,30 @@ def _columns_html(board: pd.DataFrame, gap: bool, has_base: bool, has_filtered: 
         example = ""
         rows = []
         for tier, sub in board.groupby("tier", sort=False):
-            floor = sub.loc[sub["policy"] == INFORMATION_FLOOR, "true_steady_mean_iqm"]
+            name = _gap_floor(sub)
+            floor = sub.loc[sub["policy"] == name, "true_steady_mean_iqm"]
             best = sub.loc[sub["gap_closed"] == 0.0, "true_steady_mean_iqm"]
             worst = sub["gap_closed"].min()
             if len(floor) and len(best) and np.isfinite(worst):
                 rows.append((float(best.iloc[0]) - float(floor.iloc[0]), str(tier), float(best.iloc[0]),
-                             float(floor.iloc[0]), float(worst)))
+                             float(floor.iloc[0]), float(worst), name))
         if len(ref) and rows:
-            g, tier, b, f, worst = min(rows)
+            g, tier, b, f, worst, name = min(rows)
             example = (f" On {html.escape(tier)} the best generic classical ({b:.4f} m) is only {g:.4f} m above the "
-                       f"oracle-parameter floor ({f:.4f} m), so a policy d metres worse than the best classical gets "
+                       f"{html.escape(name)} ({f:.4f} m), so a policy d metres worse than the best classical gets "
                        f"-d / {g:.4f}: the lowest value there is {worst:.2f}.")
         items.append(("gap closed [-]", "(best generic classical IQM - this IQM) / (best generic classical IQM - "
-                                        "oracle-parameter floor IQM): how much of the gap between the best generic "
+                                        "floor IQM): how much of the gap between the best generic "
                                         "classical baseline (on a Leader tier: not the model-aware particle "
-                                        "filter, which knows the generator) and the oracle-parameter floor (the error "
-                                        "of an ideal estimate from the packets received, which no follower can "
-                                        "beat) a policy closes. 0 is the best generic classical, 1 reaches the "
-                                        "floor. It is measured in units of "
+                                        "filter, which knows the generator) and the floor named in the column's "
+                                        "head a policy closes. The floor is the tier-prior floor where it "
+                                        "converged (a follower who knows the tier's generator and published "
+                                        "ranges, not the episode's draws: a floor a follower could reach), else "
+                                        "the oracle-parameter floor (the error of an ideal estimate from the "
+                                        "packets received by a filter that knows each episode's drawn parameters, "
+                                        "which no follower can beat); where both exist, a second column measures "
+                                        "against the oracle-parameter floor. 0 is the best generic classical, 1 "
+                                        "reaches the floor. It is measured in units of "
                                         "that gap, so where the gap is small a policy that is worse than the "
                                         "best classical gets a very negative value: it says how many gaps "
                                         "worse it is, not that anything is broken." + example +
@@ -763,6 +769,12 @@ def _columns_html(board: pd.DataFrame, gap: bool, has_base: bool, has_filtered: 
                                         "while a policy's scores are realisations that scatter about theirs."))
     return ("<dl class='columns'>" + "".join(f"<dt>{html.escape(k)}</dt><dd>{v}</dd>" for k, v in items)
             + "</dl>")
+
+
+def _gap_floor(sub: pd.DataFrame) -> str:
+    """The floor a tier's ``gap_closed`` is measured against (older folders: the oracle-parameter floor)."""
+    name = sub["gap_floor"].iloc[0] if "gap_floor" in sub and len(sub) else None
+    return name if isinstance(name, str) and name else INFORMATION_FLOOR
 
 
 def _table_html(board: pd.DataFrame, styles: dict[str, _Style]) -> str:
@@ -781,7 +793,11 @@ def _table_html(board: pd.DataFrame, styles: dict[str, _Style]) -> str:
         head += ["paired diff vs its base [m] [95 % CI]"] if has_base else []
         head += ["paired diff vs its base's law on its observation's filter [m] [95 % CI]"] if has_filtered else []
         head += ["P(better) [95 % CI]", "terminated [%]"]
-        head += ["gap closed [-]"] if gap else []
+        gap_floor = _gap_floor(sub)
+        both = (gap and gap_floor != INFORMATION_FLOOR and "gap_closed_oracle" in sub
+                and sub["gap_closed_oracle"].notna().any())
+        head += [f"gap closed [-] ({gap_floor})"] if gap else []
+        head += [f"gap closed [-] ({INFORMATION_FLOOR})"] if both else []
         parts.append("<table class='leaderboard' data-tier='" + html.escape(str(tier)) + "'><thead><tr>" +
                      "".join(f"<th>{h}</th>" for h in head) + "</tr></thead><tbody>")
         sub = sub.assign(_v=sub[f"{m0}_iqm"].fillna(np.inf)).sort_values("_v", kind="stable")
@@ -810,6 +826,8 @@ def _table_html(board: pd.DataFrame, styles: dict[str, _Style]) -> str:
                       "-" if not np.isfinite(r["termination_rate"]) else f"{100 * r['termination_rate']:.0f} %"]
             if gap:
                 cells.append("-" if not np.isfinite(r["gap_closed"]) else f"{r['gap_closed']:.2f}")
+            if both:
+                cells.append("-" if not np.isfinite(r["gap_closed_oracle"]) else f"{r['gap_closed_oracle']:.2f}")
             cls = "leaderboard-row best" if r["policy"] == best else "leaderboard-row"
             cls += " reference" if r["kind"] == "reference" else ""
             swatch = f"<span class='swatch' style='background:{styles[r['policy']].color}'></span>"

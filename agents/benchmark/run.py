@@ -189,14 +189,23 @@ def _check_cluster_tiers(frames: list[pd.DataFrame], specs: Sequence[PolicySpec]
                               stacklevel=3)
 
 
-def rebuild_leaderboard(out_dir: str | Path, *, command: str | None = None, progress: bool = True) -> BenchmarkResult:
+def rebuild_leaderboard(out_dir: str | Path, *, command: str | None = None, progress: bool = True,
+                        tier_prior_floor: Sequence[str] = (), cache_dir: str | Path | None = None) -> BenchmarkResult:
     """Recompute the leaderboard of a benchmark folder from its stored episodes (no episode runs) with
     the folder's bootstrap settings and each row's base / observation / filtered law, and write the
     set again (atomically). The provenance keeps the episodes' own and adds ``rebuilt``: the command,
     the versions of this computation and what changed.
 
+    Args:
+        tier_prior_floor: Leader tiers of the folder whose tier-prior floor
+            (:func:`agents.benchmark.floors.particle_floor_rows` with ``knows="tier"``, on the folder's
+            seeds of the tier; about 25 minutes per tier of 100 seeds on 2 cores) is computed and
+            added as reference rows first, replacing any the folder holds.
+        cache_dir: the particle floors' cache (:func:`agents.benchmark.floors.leader_floor`).
+
     Raises:
-        ValueError: the folder is not a complete, consistent benchmark (:func:`load_result`).
+        ValueError: the folder is not a complete, consistent benchmark (:func:`load_result`), or a
+            ``tier_prior_floor`` tier is not a Leader tier of the folder.
     """
     from agents.benchmark.outputs import load_result
 
@@ -204,6 +213,7 @@ def rebuild_leaderboard(out_dir: str | Path, *, command: str | None = None, prog
     res = load_result(out)
     cfg = res.provenance.get("config", {})
     old = res.leaderboard
+    added = _add_tier_prior_rows(res, list(tier_prior_floor), cache_dir, progress)
 
     def column(name: str) -> dict[str, str]:
         if name not in old:
@@ -215,10 +225,43 @@ def rebuild_leaderboard(out_dir: str | Path, *, command: str | None = None, prog
                         seed=int(cfg.get("bootstrap_seed", DEFAULT_BOOTSTRAP_SEED)), progress=progress,
                         bases=column("base"), observations=column("observation"), filtered=column("filtered_law"))
     prov = {k: v for k, v in res.provenance.items() if k != "rebuilt"}
-    prov["rebuilt"] = {"command": command, "versions": provenance({})["versions"],
-                       "what": "the leaderboard recomputed from the stored episodes (episodes unchanged)"}
+    what = "the leaderboard recomputed from the stored episodes (episodes unchanged)"
+    if added:
+        what = ("the tier-prior floor's reference rows added for " + ", ".join(added) +
+                " (the other episodes unchanged), then the leaderboard recomputed")
+    prov["rebuilt"] = {"command": command, "versions": provenance({})["versions"], "what": what}
+    rows = {**res.provenance.get("rebuilt", {}).get("added_rows", {}), **{t: TIER_PRIOR_ROWS for t in added}}
+    if rows:  # rows added by this or an earlier rebuild
+        prov["rebuilt"]["added_rows"] = rows
     if res.traces is None:
         raise ValueError(f"{out}: no traces.parquet: run the benchmark again to write a complete set")
     result = BenchmarkResult(res.episodes, board, prov)
     result.files = write_outputs(out, res.episodes, board, prov, res.traces)
     return result
+
+
+#: what :func:`rebuild_leaderboard`'s ``tier_prior_floor`` adds, as its provenance says
+TIER_PRIOR_ROWS = "tier-prior floor (agents.benchmark.floors.particle_floor_rows, knows='tier')"
+
+
+def _add_tier_prior_rows(res: Any, tiers: list[str], cache_dir: str | Path | None, progress: bool) -> list[str]:
+    """Replace the tier-prior floor rows of ``tiers`` in ``res.episodes`` by fresh ones (in place)."""
+    if not tiers:
+        return []
+    from agents.benchmark.floors import TIER_PRIOR_FLOOR, particle_floor_rows
+    from auv_follow_env.tiers import LEADER_TIERS
+
+    ep = res.episodes
+    have = list(dict.fromkeys(ep["tier"]))
+    for t in tiers:
+        if t not in LEADER_TIERS or t not in have:
+            raise ValueError(f"tier_prior_floor={tiers!r} is invalid: {t!r} is not one of the folder's Leader tiers "
+                             f"{[x for x in have if x in LEADER_TIERS]}")
+    frames = [ep[~((ep["policy"] == TIER_PRIOR_FLOOR) & ep["tier"].isin(tiers))]]
+    for t in dict.fromkeys(tiers):
+        seeds = res.provenance.get("config", {}).get("seeds", {}).get(t)
+        if seeds is None:
+            seeds = sorted(set(map(int, ep.loc[(ep["tier"] == t) & (ep["kind"] != "reference"), "seed"])))
+        frames.append(particle_floor_rows(t, list(map(int, seeds)), "tier", cache_dir=cache_dir, progress=progress))
+    res.episodes = pd.concat(frames, ignore_index=True)
+    return list(dict.fromkeys(tiers))
