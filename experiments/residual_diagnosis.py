@@ -1,7 +1,7 @@
 """Why the PPO residual on PROPOSED_IMM_DOB learns nothing on Leader-Hard: what moves, what the
 residual does, and whether its observation holds what it would need.
 
-    python -m experiments.residual_diagnosis          # about 30 seconds; results/residual_diagnosis.md
+    python -m experiments.residual_diagnosis          # about 3 minutes; results/residual_diagnosis.md
 
 The committed runs (results/benchmark/runs/bppo7-LeaderHard-residual-IMMDOB-s0..s2: residual on
 PROPOSED_IMM_DOB, scale 0.1, the estimator block in the observation, 10 M steps) are read and
@@ -23,6 +23,16 @@ re-played; nothing here is trained or tuned, and nothing sees a test seed.
    scored on seeds 100-163: the mean norm of e before and after subtracting the prediction, and R^2.
    If the residual's observation cannot predict e, no policy on it can correct the estimate: the
    limit is the information, not the parametrisation or PPO.
+5. **A scripted oracle residual** (sees the present target: not a follower, a diagnosis): the
+   residual's own parametrisation, a = clip(a_base + clip(a_oracle - a_base, -s, s), -1, 1), where
+   a_oracle is the same law (PROPOSED_IMM_DOB) on the perfect-link observation (the present, exact
+   target; auv_follow_env.perfect_link), both laws' disturbance observers told the applied force.
+   Nothing is learned: it is the best correction of that form a residual could make with the
+   information, at the trained residual's authority s = 0.1 of the limits and above. On check
+   seeds 100-163 of Leader-Medium and Leader-Hard: the steady-window IQM, the paired mean against
+   the base with a 95 % bootstrap CI, and lost targets (a terminated episode scores 20 m). If the
+   oracle residual at s = 0.1 closes much of the base's gap, the parametrisation has the room and
+   what the trained residual lacks is the information.
 """
 
 from __future__ import annotations
@@ -162,6 +172,76 @@ def fit_predictors(fit: dict, check: dict, epochs: int = 40, seed: int = 0) -> d
             "mlp_median": float(np.median(np.linalg.norm(Yc - mlp, axis=1)))}
 
 
+ORACLE_TIERS = ("Leader-Medium", "Leader-Hard")
+ORACLE_SCALES = (0.1, 0.2, 0.5, 1.0)
+BASE = "PROPOSED_IMM_DOB"
+
+
+def oracle_residual(tier: str, seeds: tuple[int, ...], scale: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Per episode the steady-window mean true-reference error [m] and the terminated flag of
+    the base (``scale`` None) or the scripted oracle residual at authority ``scale``, one vector env."""
+    from agents.benchmark.protocol import _max_distance
+    from auv_follow_env.metrics import tracking_metrics
+    from auv_follow_env.perfect_link import perfect_link_observation
+    from controllers import make_controller
+
+    env_id = f"AUVFollow-{tier}-v1"
+    n = len(seeds)
+    venv = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point")
+    spec = venv.unwrapped.task_spec if hasattr(venv, "unwrapped") else venv.task_spec
+    base, oracle = make_controller(BASE, spec), make_controller(BASE, spec)
+    limits = np.asarray(spec.force_limits, dtype=np.float64)
+    obs, info = venv.reset(seed=list(seeds))
+    T = spec.n_steps
+    err = np.full((n, T), np.nan)
+    alive, term_any, length = np.ones(n, dtype=bool), np.zeros(n, dtype=bool), np.full(n, T)
+    start = np.ones(n, dtype=bool)
+    for k in range(T):
+        a, _ = base.predict(obs, state=None, episode_start=start, deterministic=True)
+        a = np.asarray(a, dtype=np.float64)
+        if scale is not None:
+            seen = perfect_link_observation(obs, info["true_target"], info["follower_pose"], spec.p_d)
+            a_or, _ = oracle.predict(seen, state=None, episode_start=start, deterministic=True)
+            a = np.clip(a + np.clip(np.asarray(a_or, dtype=np.float64) - a, -scale, scale), -1.0, 1.0)
+            for law in (base, oracle):  # each law's observer hears the force applied, not its own command
+                law.disturbance_observer.applied(a * limits)
+        start[:] = False
+        obs, _, term, trunc, info = venv.step(a.astype(np.float32))
+        np.copyto(err[:, k], info["tracking_error"], where=alive)
+        ended = alive & (term | trunc)
+        length[ended] = k + 1
+        term_any |= ended & term
+        alive &= ~ended
+        if not alive.any():
+            break
+    venv.close()
+    times = spec.dt * np.arange(1, T + 1)
+    steady = np.array([tracking_metrics(err[i, :length[i]], times[:length[i]], spec.steady_start_s)["steady_mean"]
+                       for i in range(n)])
+    return np.where(term_any, _max_distance(env_id), steady), term_any
+
+
+def oracle_lines(seeds: tuple[int, ...] = CHECK_SEEDS) -> list[str]:
+    from agents.benchmark.stats import iqm, stratified_bootstrap_ci
+
+    lines = ["", "## 5. A scripted oracle residual (sees the present target; check seeds "
+             f"{seeds[0]}-{seeds[-1]})", "",
+             f"a = clip(a_base + clip(a_oracle - a_base, -s, s), -1, 1): the residual's form, with {BASE} on the "
+             "perfect-link observation as a_oracle. Steady-window error [m]; a lost target scores 20 m.", "",
+             "| tier | follower | IQM [m] | paired mean vs base [m] [95 % CI] | paired median vs base [m] "
+             "| lost targets |", "|---|---|---|---|---|---|"]
+    for tier in ORACLE_TIERS:
+        b, bt = oracle_residual(tier, seeds, None)
+        lines.append(f"| {tier} | {BASE} (the base) | {float(iqm(b)):.3f} | - | - | {int(bt.sum())} |")
+        for s in ORACLE_SCALES:
+            x, xt = oracle_residual(tier, seeds, s)
+            d = x - b
+            _, lo, hi = stratified_bootstrap_ci([d], "mean")
+            lines.append(f"| {tier} | oracle residual, s = {s:g} | {float(iqm(x)):.3f} | {d.mean():+.4f} "
+                         f"[{lo:+.4f}, {hi:+.4f}] | {np.median(d):+.4f} | {int(xt.sum())} |")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default=None, help="Markdown output (default: results/residual_diagnosis.md)")
@@ -214,7 +294,7 @@ def main(argv: list[str] | None = None) -> None:
                               f"{' (0 chosen)' if f['ridge_none'] else ''} | {f['ridge_r2']:.3f} | "
                               f"{f['mlp_norm']:.3f} ({f['mlp_median']:.3f}) | {f['mlp_r2']:.3f} |")
         print(f"{r.name}: done ({time.perf_counter() - t0:.0f} s)", flush=True)
-    lines += ret_lines + info_lines + ["", f"Wall clock: {time.perf_counter() - t0:.0f} s.", ""]
+    lines += ret_lines + info_lines + oracle_lines() + ["", f"Wall clock: {time.perf_counter() - t0:.0f} s.", ""]
     write_report(out, "\n".join(lines))
 
 
