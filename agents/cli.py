@@ -440,9 +440,13 @@ def _add_benchmark_commands(sub: Any) -> None:
                          "knows the tier's published ranges, not the episode's draws; docs/floors.md) on the "
                          "folder's seeds and add it as reference rows: about 25 minutes per tier of 100 seeds on "
                          "2 cores")
+    lb.add_argument("--add-policies", nargs="+", default=[], metavar="POLICY",
+                    help="first score these policies (as benchmark --policies takes them; NAME@Tier for one tier) "
+                         "on the folder's tiers and seeds and add them (a label the folder holds is scored again "
+                         "and replaced): a new row without running the others again")
     lb.add_argument("--cache", dest="cache_dir", default=None,
-                    help="directory of the particle floors' cache, reused while the floor's code and inputs are "
-                         "unchanged (default: no cache)")
+                    help="directory of the particle floors' and the policies' episode caches, reused while their "
+                         "code and inputs are unchanged (default: no cache)")
     lb.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     lb.set_defaults(handler=_cmd_leaderboard)
 
@@ -525,13 +529,14 @@ def _cmd_leaderboard(args: argparse.Namespace) -> None:
         _check_writable(Path(args.cache_dir), "--cache", want_dir=True)
     try:
         res = rebuild_leaderboard(args.bench, progress=args.progress, tier_prior_floor=args.tier_prior_floor,
-                                  cache_dir=args.cache_dir,
+                                  cache_dir=args.cache_dir, add_policies=args.add_policies,
                                   command="auv-follow " + shlex.join(sys.argv[1:])
                                   if sys.argv[1:2] == ["leaderboard"] else None)
     except ValueError as exc:
-        if "tier_prior_floor" not in str(exc):
-            raise
-        raise _Refused("--tier-prior-floor", str(exc).replace("tier_prior_floor=", "")) from None
+        for key, flag in (("tier_prior_floor", "--tier-prior-floor"), ("add_policies", "--add-policies")):
+            if key in str(exc):
+                raise _Refused(flag, str(exc).replace(f"{key}=", "").replace(f"{key}: ", "")) from None
+        raise
     print(benchmark_summary(res.leaderboard, res.files))
 
 

@@ -190,7 +190,8 @@ def _check_cluster_tiers(frames: list[pd.DataFrame], specs: Sequence[PolicySpec]
 
 
 def rebuild_leaderboard(out_dir: str | Path, *, command: str | None = None, progress: bool = True,
-                        tier_prior_floor: Sequence[str] = (), cache_dir: str | Path | None = None) -> BenchmarkResult:
+                        tier_prior_floor: Sequence[str] = (), cache_dir: str | Path | None = None,
+                        add_policies: Sequence[str] = (), batched: bool = True) -> BenchmarkResult:
     """Recompute the leaderboard of a benchmark folder from its stored episodes (no episode runs) with
     the folder's bootstrap settings and each row's base / observation / filtered law, and write the
     set again (atomically). The provenance keeps the episodes' own and adds ``rebuilt``: the command,
@@ -201,7 +202,12 @@ def rebuild_leaderboard(out_dir: str | Path, *, command: str | None = None, prog
             (:func:`agents.benchmark.floors.particle_floor_rows` with ``knows="tier"``, on the folder's
             seeds of the tier; about 25 minutes per tier of 100 seeds on 2 cores) is computed and
             added as reference rows first, replacing any the folder holds.
-        cache_dir: the particle floors' cache (:func:`agents.benchmark.floors.leader_floor`).
+        cache_dir: the particle floors' cache (:func:`agents.benchmark.floors.leader_floor`) and
+            the policies' episode cache (:func:`evaluate_tier`).
+        add_policies: policies as :func:`benchmark` takes them (``NAME@Tier`` for one tier) scored
+            on the folder's seeds of its tiers and added (a label the folder holds is scored
+            again and replaced), with their replay traces; the provenance lists them.
+        batched: evaluate the added policies through the native vector env.
 
     Raises:
         ValueError: the folder is not a complete, consistent benchmark (:func:`load_result`), or a
@@ -214,6 +220,7 @@ def rebuild_leaderboard(out_dir: str | Path, *, command: str | None = None, prog
     cfg = res.provenance.get("config", {})
     old = res.leaderboard
     added = _add_tier_prior_rows(res, list(tier_prior_floor), cache_dir, progress)
+    new_specs = _add_policy_rows(res, list(add_policies), cache_dir, batched, progress)
 
     def column(name: str) -> dict[str, str]:
         if name not in old:
@@ -223,16 +230,23 @@ def rebuild_leaderboard(out_dir: str | Path, *, command: str | None = None, prog
 
     board = leaderboard(res.episodes, n_resamples=int(cfg.get("n_resamples", DEFAULT_RESAMPLES)),
                         seed=int(cfg.get("bootstrap_seed", DEFAULT_BOOTSTRAP_SEED)), progress=progress,
-                        bases=column("base"), observations=column("observation"), filtered=column("filtered_law"))
+                        bases={**column("base"), **residual_bases(new_specs)},
+                        observations={**column("observation"), **residual_observations(new_specs)},
+                        filtered={**column("filtered_law"), **filtered_laws(new_specs)})
     prov = {k: v for k, v in res.provenance.items() if k != "rebuilt"}
-    what = "the leaderboard recomputed from the stored episodes (episodes unchanged)"
-    if added:
-        what = ("the tier-prior floor's reference rows added for " + ", ".join(added) +
-                " (the other episodes unchanged), then the leaderboard recomputed")
+    done = ([f"the tier-prior floor's reference rows added for {', '.join(added)}"] if added else []) + \
+        ([f"policies scored and added: {', '.join(s.label for s in new_specs)}"] if new_specs else [])
+    what = ("; ".join(done) + " (the other episodes unchanged), then the leaderboard recomputed" if done else
+            "the leaderboard recomputed from the stored episodes (episodes unchanged)")
+    earlier = res.provenance.get("rebuilt", {})
     prov["rebuilt"] = {"command": command, "versions": provenance({})["versions"], "what": what}
-    rows = {**res.provenance.get("rebuilt", {}).get("added_rows", {}), **{t: TIER_PRIOR_ROWS for t in added}}
+    rows = {**earlier.get("added_rows", {}), **{t: TIER_PRIOR_ROWS for t in added}}
     if rows:  # rows added by this or an earlier rebuild
         prov["rebuilt"]["added_rows"] = rows
+    pols = {**earlier.get("added_policies", {}),
+            **{s.label: {"spec": dataclasses.asdict(s), "command": command} for s in new_specs}}
+    if pols:
+        prov["rebuilt"]["added_policies"] = pols
     if res.traces is None:
         raise ValueError(f"{out}: no traces.parquet: run the benchmark again to write a complete set")
     result = BenchmarkResult(res.episodes, board, prov)
@@ -265,3 +279,37 @@ def _add_tier_prior_rows(res: Any, tiers: list[str], cache_dir: str | Path | Non
         frames.append(particle_floor_rows(t, list(map(int, seeds)), "tier", cache_dir=cache_dir, progress=progress))
     res.episodes = pd.concat(frames, ignore_index=True)
     return list(dict.fromkeys(tiers))
+
+
+def _add_policy_rows(res: Any, policies: list[str], cache_dir: str | Path | None, batched: bool,
+                     progress: bool) -> list[PolicySpec]:
+    """Score ``policies`` on the folder's tiers and seeds; replace their rows and traces in ``res``."""
+    if not policies:
+        return []
+    specs = [parse_policy(p) for p in policies]
+    labels = [s.label for s in specs]
+    dup = sorted({x for x in labels if labels.count(x) > 1})
+    if dup:
+        raise ValueError(f"add_policies has duplicate labels {dup}: give each method once")
+    check_labels(labels)
+    cfg = res.provenance.get("config", {})
+    ep = res.episodes
+    tiers = [t for t in dict.fromkeys(ep["tier"])]
+    seed_map = {t: [int(x) for x in cfg.get("seeds", {}).get(t) or
+                    sorted(set(map(int, ep.loc[(ep["tier"] == t) & (ep["kind"] != "reference"), "seed"])))]
+                for t in tiers}
+    for s in specs:
+        unknown = [t for t in s.tiers if t not in tiers]
+        if unknown:
+            raise ValueError(f"add_policies: {s.label!r} names tiers {unknown} the folder does not hold {tiers}")
+    frames = [evaluate_tier(specs, t, seed_map[t], batched=batched, progress=progress, cache_dir=cache_dir)
+              for t in tqdm(tiers, desc="tiers", disable=not progress) if any(not s.tiers or t in s.tiers
+                                                                            for s in specs)]
+    frames = [f for f in frames if len(f)]
+    if not frames:
+        raise ValueError(f"add_policies: none of {labels} can run on the folder's tiers {tiers}")
+    res.episodes = pd.concat([ep[~ep["policy"].isin(labels)], *frames], ignore_index=True)
+    traces = replay_traces(specs, {t: seed_map[t] for t in tiers}, progress=progress)
+    if res.traces is not None:
+        res.traces = pd.concat([res.traces[~res.traces["policy"].isin(labels)], traces], ignore_index=True)
+    return specs
