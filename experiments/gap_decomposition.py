@@ -13,8 +13,10 @@ controller's error in closed loop, on the tier's 100 published test seeds (scori
 * **Tracking cost** = closed loop / estimation alone: how much a follower loses tracking that estimate
   (1.0 would be a perfect tracker of a perfect copy of the estimate).
 
-The oracle-parameter floor (named "information floor" before 2026-12-07: a filter that knows each episode's drawn
-parameters) is shown beside for scale; it is not a follower's reachable floor.
+The floors are shown beside (their expected error, from the leaderboard): the tier-prior floor (a
+follower who knows the tier's published ranges, on the tiers where it converged) and the
+oracle-parameter floor (named "information floor" before 2026-12-07: a filter that knows each
+episode's drawn parameters, which no follower reaches).
 Writes results/gap_decomposition.md.
 """
 
@@ -36,6 +38,9 @@ ESTIMATOR_NAMES = {"PROPOSED_KF_DOB": "linear (OU0)", "PROPOSED_IMM_DOB": "gener
 LEARNED = {"Leader-Medium": "le1-LeaderMedium", "Leader-Hard": "le2-LeaderHard"}
 RUNS = Path("results/benchmark/runs")
 BOARD = Path("results/benchmark/leaderboard.csv")
+#: the floors' leaderboard rows (agents/benchmark/floors.py) and what each knows
+FLOORS = (("tier-prior floor", "tier-prior floor (knows the tier's published ranges)"),
+          ("oracle-parameter floor", "oracle-parameter floor (knows the episode's draws)"))
 
 
 def _learned_label(board: pd.DataFrame, tier: str) -> str | None:
@@ -58,7 +63,7 @@ def tier_rows(tier: str, board: pd.DataFrame, progress: bool) -> list[str]:
     data = le.record(tier, tuple(LEADER_TIERS[tier].test_seeds), scoring=True)
     spec = data["spec"]
     sub = board[board["tier"] == tier].set_index("policy")
-    floor = sub.loc["oracle-parameter floor"] if "oracle-parameter floor" in sub.index else None
+    floor_rows = [(sub.loc[n], what) for n, what in FLOORS if n in sub.index]
     rows = []
     for name in CONTROLLERS:
         if name not in sub.index:
@@ -82,8 +87,8 @@ def tier_rows(tier: str, board: pd.DataFrame, progress: bool) -> list[str]:
         out.append(f"| {tier} | {est_name} | {ctrl if len(ctrl) < 40 else 'learned estimator row'} | {_fmt(alone)} | "
                    f"{c:.3f} [{closed['true_steady_mean_iqm_lo']:.3f}, {closed['true_steady_mean_iqm_hi']:.3f}] | "
                    f"{c / le.iqm(alone):.2f}x | {int(closed['lost_targets'])} |")
-    if floor is not None:
-        out.append(f"| {tier} | oracle-parameter floor (knows the episode's draws) | - | "
+    for floor, what in floor_rows:
+        out.append(f"| {tier} | {what} | - | "
                    f"{floor['true_steady_mean_iqm']:.3f} [{floor['true_steady_mean_iqm_lo']:.3f}, "
                    f"{floor['true_steady_mean_iqm_hi']:.3f}] | - | - | - |")
     return out

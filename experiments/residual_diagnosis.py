@@ -228,7 +228,7 @@ def oracle_lines(seeds: tuple[int, ...] = CHECK_SEEDS) -> list[str]:
              f"{seeds[0]}-{seeds[-1]})", "",
              f"a = clip(a_base + clip(a_oracle - a_base, -s, s), -1, 1): the residual's form, with {BASE} on the "
              "perfect-link observation as a_oracle. Steady-window error [m]; a lost target scores 20 m.", "",
-             "| tier | follower | IQM [m] | paired mean vs base [m] [95 % CI] | paired median vs base [m] "
+             "| tier | follower | IQM [m] | paired mean vs base, m (95 % CI) | paired median vs base [m] "
              "| lost targets |", "|---|---|---|---|---|---|"]
     for tier in ORACLE_TIERS:
         b, bt = oracle_residual(tier, seeds, None)
