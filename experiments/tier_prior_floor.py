@@ -22,6 +22,7 @@ causal estimator and change by < 2 % when N doubles.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -52,9 +53,9 @@ def tier_rows(tier: str, settings=SETTINGS, oracle: bool = True) -> tuple[list[s
     rows, per_ep = [], []
 
     def add(name: str, x: np.ndarray, seconds: float | None) -> None:
-        rows.append(f"| {tier} | {name} | {iqm(x):.3f} | {np.nanmean(x):.3f} | "
+        rows.append(f"| {tier} | {name} | {iqm(x):.4f} | {np.nanmean(x):.4f} | "
                     f"{'-' if seconds is None else f'{seconds:.0f}'} |")
-        per_ep.append(f"| {tier} | {name} | {' | '.join(f'{v:.3f}' for v in x)} |")
+        per_ep.append(f"| {tier} | {name} | {' | '.join(f'{v:.4f}' for v in x)} |")
 
     for name in ESTIMATORS:
         config = make_controller(name, rec["spec"]).estimator.config
@@ -116,6 +117,7 @@ def main(argv: list[str] | None = None) -> None:
                    help="instead: the settled settings on the published test seeds of these Leader tiers (none "
                         f"given: {', '.join(SCORE_TIERS[:2])}), cached in {CACHE} (about 15 minutes per tier); "
                         "default output results/tier_prior_floor_test.md")
+    argv = sys.argv[1:] if argv is None else list(argv)
     a = p.parse_args(argv)
     if a.score is not None:
         tiers = tuple(a.score) or SCORE_TIERS[:2]
@@ -144,7 +146,8 @@ def main(argv: list[str] | None = None) -> None:
         rows += r
         per_ep += e
     lines = ["# The tier-prior floor (a follower who knows the tier): convergence and order", "",
-             "Reproduce: `python -m experiments.tier_prior_floor` (method in its docstring). Check seeds "
+             "Reproduce: `python -m experiments.tier_prior_floor" + (" " + " ".join(argv) if argv else "") +
+             "` (method in its docstring). Check seeds "
              f"{SEEDS[0]}-{SEEDS[-1]} (training seeds), the realised steady-window mean error [m].", "",
              "| tier | estimate | IQM [m] | mean [m] | seconds |", "|---|---|---|---|---|", *rows, "",
              "Per episode (seeds in order):", "",
