@@ -78,7 +78,7 @@ SCORE_TIERS = ("Leader-Easy", "Leader-Medium", "Leader-Hard")
 CACHE = Path("results/tmp/floor-cache")  #: the particle floors' cache (ignored by git)
 
 
-def scoring_lines(tiers: tuple[str, ...], cache: Path = CACHE) -> list[str]:
+def scoring_lines(tiers: tuple[str, ...], cache: Path = CACHE, oracle: bool = True) -> list[str]:
     """The settled settings (floors.TIER_PRIOR_*) on each tier's 100 published test seeds, with
     the floors' own follower's recordings: the tier-prior floor's expected and realised error,
     the oracle-parameter floor's, and each causal estimator open loop on the same packets."""
@@ -94,9 +94,10 @@ def scoring_lines(tiers: tuple[str, ...], cache: Path = CACHE) -> list[str]:
 
     for tier in tiers:
         rec = floors.record_episodes(tier, None, floors.LEADER_FOLLOWER)
-        for knows, name in (("tier", f"tier-prior floor (N = {floors.TIER_PRIOR_PARTICLES}, Liu-West a = "
-                                     f"{floors.TIER_PRIOR_SHRINK})"),
-                            ("episode", f"oracle-parameter floor (N = {floors.DEFAULT_PARTICLES})")):
+        which = (("tier", f"tier-prior floor (N = {floors.TIER_PRIOR_PARTICLES}, Liu-West a = "
+                          f"{floors.TIER_PRIOR_SHRINK})"),
+                 ("episode", f"oracle-parameter floor (N = {floors.DEFAULT_PARTICLES})"))
+        for knows, name in which[:2 if oracle else 1]:
             df = floors.leader_floor(tier, None, knows=knows, cache_dir=cache, progress=True)
             e, r = df["expected_steady_mean"].to_numpy(), df["realised_steady_mean"].to_numpy()
             lines.append(f"| {tier} | {name} | {ci(e)} | {ci(r)} | {int((r > 5 * e).sum())} |")
@@ -123,10 +124,10 @@ def main(argv: list[str] | None = None) -> None:
         tiers = tuple(a.score) or SCORE_TIERS[:2]
         out = output_path(a, p, Path("results/tier_prior_floor_test.md"))
         t0 = time.perf_counter()
-        body = scoring_lines(tiers)
+        body = scoring_lines(tiers, oracle=not a.no_oracle)
         write_report(out, "\n".join([
             "# The tier-prior floor on the test seeds", "",
-            f"Reproduce: `python -m experiments.tier_prior_floor --score {' '.join(tiers)}`. Each tier's 100 "
+            f"Reproduce: `python -m experiments.tier_prior_floor {' '.join(argv)}`. Each tier's 100 "
             f"published test seeds, recorded under {floors.LEADER_FOLLOWER} (the floors' follower); settings fixed "
             "on the check seeds before this run (results/tier_prior_floor.md). Steady-window mean error per "
             "episode, IQM over the episodes with a 95 % bootstrap CI. Expected: the posterior's own mean "
