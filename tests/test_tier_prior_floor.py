@@ -134,7 +134,7 @@ def test_gap_closed_is_measured_against_the_tier_prior_floor_where_there_is_one(
 
 def test_the_tier_prior_floor_is_added_to_a_benchmark_folder(tmp_path, monkeypatch):
     """`auv-follow leaderboard --tier-prior-floor` adds the floor's rows (the same numbers as
-    leader_floor(knows='tier') on those seeds), keeps every other episode row, and names the
+    leader_floor(knows='tier')'s realised error on those seeds), keeps every other episode row, and names the
     floor in the leaderboard's gap-closed column; a tier the folder lacks is refused by name."""
     from agents.benchmark.run import benchmark, rebuild_leaderboard
 
@@ -149,7 +149,8 @@ def test_the_tier_prior_floor_is_added_to_a_benchmark_folder(tmp_path, monkeypat
     new = rebuild_leaderboard(out, tier_prior_floor=["Leader-Easy"], cache_dir=tmp_path / "cache", progress=False)
     rows = new.episodes[new.episodes["policy"] == floors.TIER_PRIOR_FLOOR].sort_values("seed")
     direct = floors.leader_floor("Leader-Easy", seeds, knows="tier", cache_dir=tmp_path / "cache")
-    np.testing.assert_array_equal(rows["true_steady_mean"].to_numpy(), direct["expected_steady_mean"].to_numpy())
+    # the tier-prior floor's rows hold its realised error (its expected error can collapse with its posterior)
+    np.testing.assert_array_equal(rows["true_steady_mean"].to_numpy(), direct["realised_steady_mean"].to_numpy())
     assert (rows["kind"] == floors.REFERENCE_KIND).all() and rows["cond_fix_sigma_m"].notna().all()
     kept = new.episodes[new.episodes["policy"] != floors.TIER_PRIOR_FLOOR].reset_index(drop=True)
     assert kept.equals(before.reset_index(drop=True)[kept.columns])
