@@ -13,10 +13,10 @@ controller's error in closed loop, on the tier's 100 published test seeds (scori
 * **Tracking cost** = closed loop / estimation alone: how much a follower loses tracking that estimate
   (1.0 would be a perfect tracker of a perfect copy of the estimate).
 
-The floors are shown beside (their expected error, from the leaderboard): the tier-prior floor (a
+The floors are shown beside, from the leaderboard: the tier-prior floor (its realised error; a
 follower who knows the tier's published ranges, on the tiers where it converged) and the
 oracle-parameter floor (named "information floor" before 2026-12-07: a filter that knows each
-episode's drawn parameters, which no follower reaches).
+episode's drawn parameters, which no follower reaches; its expected error).
 Writes results/gap_decomposition.md.
 """
 
