@@ -6,6 +6,7 @@ to any cluster; the expected tables are those of the same command without ``--ad
 from __future__ import annotations
 
 import os
+import secrets
 import socket
 import subprocess
 import sys
@@ -20,6 +21,10 @@ from agents.benchmark.cluster import ClusterUnavailable, cells, check_reachable 
 from agents.benchmark.policies import parse_policy  # noqa: E402
 
 RAY = Path(sys.executable).with_name("ray")
+#: token authentication with this test's own token, for the head and every driver: `ray start --head`
+#: turns token authentication on by itself only when ~/.ray/auth_token exists (left by an earlier
+#: local Ray), and never makes one, so without this the test depended on what ran before it
+AUTH = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
 CLI = [sys.executable, "-m", "agents.cli"]
 
 
@@ -32,7 +37,7 @@ def _free_port() -> int:
 @pytest.fixture(scope="module")
 def head():
     port = _free_port()
-    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", **AUTH}
     up = subprocess.run([str(RAY), "start", "--head", f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
                          "--disable-usage-stats"], capture_output=True, text=True, timeout=180, env=env)
     assert up.returncode == 0, up.stderr[-2000:]
@@ -43,8 +48,7 @@ def head():
 
 
 def _bench(out: Path, *extra: str) -> subprocess.CompletedProcess:
-    # (token authentication is `ray start --head`'s default: a driver given an address opts in by RAY_AUTH_MODE)
-    env = {**os.environ, "RAY_AUTH_MODE": "token", "MPLBACKEND": "Agg"}
+    env = {**os.environ, **AUTH, "MPLBACKEND": "Agg"}
     cmd = [*CLI, "benchmark", "--tiers", "Hard", "S2", "--policies", "PID", "PROPOSED_KF_DOB@Hard", "PROPOSED@S2",
            "--seeds", "5000000-5000004", "--resamples", "200", "--floors",
            "--out", str(out), *extra]
