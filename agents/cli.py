@@ -417,8 +417,8 @@ def _add_benchmark_commands(sub: Any) -> None:
     b.add_argument("--floors", action="store_true",
                    help="add each tier's floors as reference rows and 'gap closed' columns (agents/benchmark/"
                         "floors.py, docs/floors.md): a v1 tier's control and Kalman floors (a minute per tier), a "
-                        "Leader tier's control and oracle-parameter floors (a few minutes) and, on Leader-Easy and "
-                        "Leader-Medium, the tier-prior floor (about 25 minutes per tier; --cache keeps it)")
+                        "Leader tier's control and oracle-parameter floors (a few minutes) and its tier-prior floor "
+                        "(about 25-30 minutes per tier; --cache keeps it)")
     b.add_argument("--address", default=None,
                    help="run the episodes on the Ray cluster at this address (host:port of its head, or 'local' "
                         "for a new Ray instance on this machine) as (tier, policy, seed chunk) cells; every node "

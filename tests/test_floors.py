@@ -301,7 +301,7 @@ def test_a_leader_tier_has_both_floors_its_information_floor_a_particle_filter()
     """The control floor (a perfect link) does not depend on the target's model; a Leader tier's
     oracle-parameter floor is the particle filter under the true generator (a linear filter's
     posterior would be wrong there), and lies above the control floor."""
-    df = floors.floor_episodes("Leader-Hard", [1], controllers=["PROPOSED_KF_DOB"])
+    df = floors.floor_episodes("Leader-Hard", [1], controllers=["PROPOSED_KF_DOB"], tier_prior=False)
     assert set(df["policy"]) == {floors.CONTROL_FLOOR, floors.INFORMATION_FLOOR}
     assert (df["tier"] == "Leader-Hard").all() and (df["kind"] == floors.REFERENCE_KIND).all()
     ctrl = df.loc[df["policy"] == floors.CONTROL_FLOOR].iloc[0]

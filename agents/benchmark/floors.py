@@ -634,7 +634,7 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
     and :data:`INFORMATION_FLOOR` with ``run`` = ``"kalman"`` on a v1 tier, the particle filter
     of :mod:`agents.benchmark.bayes_floor` on a Leader tier, its rows cached in ``cache_dir``
     if given; on the Leader tiers of :data:`TIER_PRIOR_TIERS` with ``tier_prior`` also
-    :data:`TIER_PRIOR_FLOOR`, about 25 minutes per tier of 100 seeds on 2 cores), with the drawn
+    :data:`TIER_PRIOR_FLOOR`, about 25-30 minutes per tier of 100 seeds on 2 cores), with the drawn
     condition (``cond_*``) and the loss threshold like :func:`agents.benchmark.evaluate_tier`'s rows.
     The oracle-parameter floors' ``true_*_mean`` are the expected errors, the tier-prior floor's
     its realised errors (what a follower running that filter reaches); their other metrics are NaN."""
@@ -790,8 +790,8 @@ TIER_PRIOR_PARTICLES, TIER_PRIOR_SHRINK, TIER_PRIOR_DRAWS = 16384, 0.98, 4
 FLOOR_KNOWS = {"episode": INFORMATION_FLOOR, "tier": TIER_PRIOR_FLOOR}
 #: the Leader tiers whose benchmark floors include the tier-prior floor: those where it converged
 #: (doubling the particles changes its IQM by < 2 % on the check seeds, experiments/tier_prior_floor.py)
-#: and lies below every causal estimator; on Leader-Hard it does neither (docs/floors.md)
-TIER_PRIOR_TIERS = ("Leader-Easy", "Leader-Medium")
+#: and lies below every causal estimator there: all three (docs/floors.md)
+TIER_PRIOR_TIERS = ("Leader-Easy", "Leader-Medium", "Leader-Hard")
 
 
 def leader_floor(tier: str, seeds: Iterable[int] | None = None, *, particles: int | None = None,
