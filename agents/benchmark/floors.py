@@ -40,6 +40,7 @@ follower who knows the tier's generator and published ranges, not the episode's 
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -649,7 +650,7 @@ def floor_episodes(tier: str, seeds: Iterable[int] | None = None, *, controllers
 
     if tier in TIERS:
         inf = information_floor(tier, seeds, follower, progress=progress)
-        frames.append(_expected_rows(INFORMATION_FLOOR, "kalman", inf))
+        frames.append(_floor_rows(INFORMATION_FLOOR, "kalman", inf))
     else:  # a Leader tier: the particle filter under the true generator (agents/benchmark/bayes_floor.py)
         frames += [_particle_floor_frame(tier, seeds, knows, cache_dir, progress)
                    for knows in (("episode", "tier") if tier_prior and tier in TIER_PRIOR_TIERS else ("episode",))]
@@ -677,16 +678,16 @@ def _particle_floor_frame(tier: str, seeds: Sequence[int], knows: str, cache_dir
         # expected, up to 4 m realised); the realised error is what a follower running it reaches
         run = (f"particle filter, {TIER_PRIOR_PARTICLES} particles, the tier's parameter law as prior, "
                f"Liu-West a = {TIER_PRIOR_SHRINK:g}; realised error")
-        df = df.assign(expected_steady_mean=df["realised_steady_mean"], expected_full_mean=df["realised_full_mean"])
-    else:
-        run = f"particle filter, {DEFAULT_PARTICLES} particles"
-    return _expected_rows(FLOOR_KNOWS[knows], run, df)
+        return _floor_rows(FLOOR_KNOWS[knows], run, df, "realised")
+    return _floor_rows(FLOOR_KNOWS[knows], f"particle filter, {DEFAULT_PARTICLES} particles", df)
 
 
-def _expected_rows(policy: str, run: str, inf: pd.DataFrame) -> pd.DataFrame:
+def _floor_rows(policy: str, run: str, inf: pd.DataFrame, which: str = "expected") -> pd.DataFrame:
+    """A floor's per-episode table as episode rows: its ``{which}_steady_mean`` / ``_full_mean``
+    as the true-reference errors."""
     return pd.DataFrame({"policy": policy, "run": run, "seed": inf["seed"], "steps": inf["steps"],
-                         "terminated": False, "return": np.nan, "true_steady_mean": inf["expected_steady_mean"],
-                         "true_full_mean": inf["expected_full_mean"]})
+                         "terminated": False, "return": np.nan, "true_steady_mean": inf[f"{which}_steady_mean"],
+                         "true_full_mean": inf[f"{which}_full_mean"]})
 
 
 def _reference_table(tier: str, seeds: Sequence[int], frames: list[pd.DataFrame]) -> pd.DataFrame:
@@ -917,14 +918,12 @@ def add_gap_closed(board: pd.DataFrame, metric: str = "true_steady_mean") -> pd.
     return out
 
 
-def _floor_source(cache: list = []) -> bytes:  # noqa: B006  (computed once: the code this process runs)
+@functools.cache
+def _floor_source() -> bytes:
     """Of this module, the source of the code a particle floor row depends on beyond the
     recording: edits elsewhere here (the leaderboard's use of the rows) keep the cached rows.
-    Read once, on the first call, so that a file edited while a long run goes on does not change
-    that run's keys."""
+    Read once per process, so that a file edited while a long run goes on does not change that
+    run's keys."""
     import inspect
 
-    if not cache:
-        cache.append(b"".join(inspect.getsource(fn).encode() for fn in (leader_bayes_floor, extract_packets,
-                                                                         _cache_key)))
-    return cache[0]
+    return b"".join(inspect.getsource(fn).encode() for fn in (leader_bayes_floor, extract_packets, _cache_key))

@@ -273,10 +273,7 @@ def _add_tier_prior_rows(res: Any, tiers: list[str], cache_dir: str | Path | Non
                              f"{[x for x in have if x in LEADER_TIERS]}")
     frames = [ep[~((ep["policy"] == TIER_PRIOR_FLOOR) & ep["tier"].isin(tiers))]]
     for t in dict.fromkeys(tiers):
-        seeds = res.provenance.get("config", {}).get("seeds", {}).get(t)
-        if seeds is None:
-            seeds = sorted(set(map(int, ep.loc[(ep["tier"] == t) & (ep["kind"] != "reference"), "seed"])))
-        frames.append(particle_floor_rows(t, list(map(int, seeds)), "tier", cache_dir=cache_dir, progress=progress))
+        frames.append(particle_floor_rows(t, _folder_seeds(res, t), "tier", cache_dir=cache_dir, progress=progress))
     res.episodes = pd.concat(frames, ignore_index=True)
     return list(dict.fromkeys(tiers))
 
@@ -292,12 +289,9 @@ def _add_policy_rows(res: Any, policies: list[str], cache_dir: str | Path | None
     if dup:
         raise ValueError(f"add_policies has duplicate labels {dup}: give each method once")
     check_labels(labels)
-    cfg = res.provenance.get("config", {})
     ep = res.episodes
-    tiers = [t for t in dict.fromkeys(ep["tier"])]
-    seed_map = {t: [int(x) for x in cfg.get("seeds", {}).get(t) or
-                    sorted(set(map(int, ep.loc[(ep["tier"] == t) & (ep["kind"] != "reference"), "seed"])))]
-                for t in tiers}
+    tiers = list(dict.fromkeys(ep["tier"]))
+    seed_map = {t: _folder_seeds(res, t) for t in tiers}
     for s in specs:
         unknown = [t for t in s.tiers if t not in tiers]
         if unknown:
@@ -313,3 +307,12 @@ def _add_policy_rows(res: Any, policies: list[str], cache_dir: str | Path | None
     if res.traces is not None:
         res.traces = pd.concat([res.traces[~res.traces["policy"].isin(labels)], traces], ignore_index=True)
     return specs
+
+
+def _folder_seeds(res: Any, tier: str) -> list[int]:
+    """A benchmark folder's seeds of a tier: its configuration's, else those of its episode rows."""
+    seeds = res.provenance.get("config", {}).get("seeds", {}).get(tier)
+    if seeds is None:
+        ep = res.episodes
+        seeds = sorted(set(map(int, ep.loc[(ep["tier"] == tier) & (ep["kind"] != "reference"), "seed"])))
+    return [int(x) for x in seeds]
